@@ -1,0 +1,247 @@
+"""`DynamicSINDy`: stage one as a scikit-learn-style estimator."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from . import _validation as val
+from ._derivatives import differentiate, noise_level
+from ._library import check_library, fit_library
+from ._results import CoefficientSeries
+from ._training import (
+    CoefficientModel,
+    least_squares_constants,
+    make_training_options,
+    train,
+)
+from .generators import build_generator
+
+
+class DynamicSINDy:
+    """Time-varying SINDy coefficients from a deep generative model (dynamic SINDy).
+
+    Learns Xi(t) such that ``Theta(x(t)) Xi(t) ~ xdot(t)`` for any pysindy feature
+    library, in two phases: a sparsity phase that prunes terms, then a refit on the
+    fixed support with stronger smoothing. Coefficients are reported in physical units.
+
+    Parameters
+    ----------
+    library : pysindy feature library, optional
+        Candidate functions Theta (default ``PolynomialLibrary(degree=2)``).
+    generator : {"timevae"}
+        The deep generative model mapping the series to coefficient series.
+    generator_options : dict, optional
+        Architecture options of the generator (e.g. ``{"latent_dim": 8}``).
+    training : TrainingOptions or dict, optional
+        Loss weights, steps and pruning threshold (see :class:`TrainingOptions`).
+    differentiation_method : pysindy differentiation object, optional
+        Used when ``x_dot`` is not given (default: a noise-adaptive Savitzky-Golay).
+    support : dict or bool array, optional
+        Fixed structure, e.g. ``{"x": ["y"]}`` (``xdot = c(t) y``); equations not
+        named are found by sparsity. A bool array of shape (n_states, n_features)
+        fixes every equation.
+    time_varying : dict or bool array, optional
+        Terms allowed to vary in time (default: all). Others are fitted as constants.
+        E.g. ``{"y": ["1"]}``: only the constant term of ydot varies.
+    device : str
+        Torch device ("cpu" or "cuda").
+    verbose : bool
+        Show a progress bar during training.
+    seed : int
+        Seeds all randomness; CPU runs with the same seed are repeatable.
+
+    Examples
+    --------
+    >>> import pysindy as ps
+    >>> from latentsindy import DynamicSINDy, systems
+    >>> data = systems.harmonic_oscillator(A=-2.0, B=1.0, n_times=300)
+    >>> model = DynamicSINDy(ps.PolynomialLibrary(degree=1, include_bias=False),
+    ...                      training={"support_steps": 50, "refit_steps": 50}, verbose=False)
+    >>> model = model.fit(data.x, data.t, feature_names=["x", "y"])
+    >>> model.coefficients(n_samples=4).mean.shape
+    (300, 2, 2)
+    """
+
+    def __init__(self, library=None, *, generator="timevae", generator_options=None,
+                 training=None, differentiation_method=None, support=None,
+                 time_varying=None, device="cpu", verbose=True, seed=0):
+        self.library = library
+        self.generator = generator
+        self.generator_options = generator_options
+        self.training = training
+        self.differentiation_method = differentiation_method
+        self.support = support
+        self.time_varying = time_varying
+        self.device = device
+        self.verbose = verbose
+        self.seed = seed
+
+    # ------------------------------------------------------------------ fit
+    def fit(self, x, t, *, x_dot=None, feature_names=None) -> DynamicSINDy:
+        """Fit time-varying coefficients to one or several trajectories.
+
+        Parameters
+        ----------
+        x : array (n_times, n_states) or list of such arrays
+            Several trajectories must share the same time-varying dynamics and times.
+        t : float, array (n_times,), or list of arrays
+            Sample spacing or sample times.
+        x_dot : array or list of arrays, optional
+            Known derivatives; estimated with ``differentiation_method`` otherwise.
+        feature_names : list of str, optional
+            State names (default ``x0, x1, ...``).
+
+        Returns
+        -------
+        self
+        """
+        options = make_training_options(self.training)
+        trajs = val.as_trajectories(x, "x")
+        times = val.as_times(t, trajs)
+        _check_shared_times(times)
+        names = val.check_feature_names(feature_names, trajs[0].shape[1])
+        if not isinstance(self.seed, int | np.integer) or self.seed < 0:
+            raise TypeError(f"seed must be a non-negative int; got {self.seed!r}.")
+        if x_dot is None:
+            xdots, noise_std, weights = differentiate(self.differentiation_method, trajs, times)
+        else:
+            xdots = val.as_trajectories(x_dot, "x_dot")
+            if [d.shape for d in xdots] != [tr.shape for tr in trajs]:
+                raise ValueError(f"x_dot shapes {[d.shape for d in xdots]} must match x shapes "
+                                 f"{[tr.shape for tr in trajs]}.")
+            noise_std = np.mean([noise_level(d) for d in xdots], axis=0)
+            weights = [np.ones_like(d) for d in xdots]
+        library = check_library(self.library)
+        thetas, feature_list = fit_library(library, trajs, names)
+        support = _term_mask(self.support, names, feature_list, "support", default=True,
+                             unnamed=True)
+        free_rows = _free_rows(self.support, names)
+        varying = _term_mask(self.time_varying, names, feature_list, "time_varying",
+                             default=True, unnamed=False)
+
+        theta = np.stack(thetas)  # (B, T, F)
+        xdot = np.stack(xdots)  # (B, T, n)
+        self.feature_scale_ = np.sqrt(np.mean(theta**2, axis=(0, 1)))
+        self.feature_scale_[self.feature_scale_ == 0] = 1.0
+        self.derivative_scale_ = np.sqrt(np.mean(xdot**2, axis=(0, 1)))
+        self.derivative_scale_[self.derivative_scale_ == 0] = 1.0
+        # variance of the derivative noise in normalised units (floored: no data are exact)
+        self.noise_variance_ = max(float(np.mean((noise_std / self.derivative_scale_) ** 2)),
+                                   1e-8)
+        dev = torch.device(self.device)
+        as_t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32,  # noqa: E731
+                                         device=dev)
+        theta_n = as_t(theta / self.feature_scale_)
+        xdot_n = as_t(xdot / self.derivative_scale_)
+        weights_t = as_t(np.stack(weights))
+        self._inputs = as_t(_encoder_inputs(np.stack(trajs), xdot).transpose(0, 2, 1))
+
+        torch.manual_seed(self.seed)
+        gen = build_generator(self.generator, self._inputs.shape[1], support.size,
+                              self.generator_options, self.seed)
+        support_t = torch.as_tensor(support, device=dev)
+        constants = least_squares_constants(theta_n, xdot_n, support_t)
+        self.model_ = CoefficientModel(gen, constants, support_t,
+                                       torch.as_tensor(varying, dtype=torch.float32)).to(dev)
+        self.history_ = train(self.model_, theta_n, xdot_n, weights_t, self._inputs,
+                              self.noise_variance_,
+                              torch.as_tensor(free_rows, device=dev), options, self.verbose)
+        self.model_.eval()
+        self.library_ = library
+        self.state_names_ = tuple(names)
+        self.feature_names_ = tuple(feature_list)
+        self.times_ = times[0]
+        self.x_ = trajs
+        self.x_dot_ = xdots
+        self.support_ = self.model_.support.cpu().numpy().copy()
+        self.time_varying_ = varying & self.support_
+        self.n_parameters_ = sum(p.numel() for p in gen.parameters())
+        return self
+
+    # ------------------------------------------------------------ results
+    def coefficients(self, n_samples: int = 64) -> CoefficientSeries:
+        """Posterior mean, spread and samples of Xi(t) in physical units."""
+        self._check_fitted()
+        n_samples = val.check_positive(n_samples, "n_samples", integer=True)
+        gen = torch.Generator(device="cpu").manual_seed(self.seed + 1)
+        with torch.no_grad():
+            state = torch.random.get_rng_state()
+            torch.random.set_rng_state(gen.get_state())
+            try:
+                samples, _ = self.model_(self._inputs, int(n_samples))
+            finally:
+                torch.random.set_rng_state(state)
+            mean, _ = self.model_(self._inputs, 0)
+        scale = self.derivative_scale_[:, None] / self.feature_scale_[None, :]
+        samples = samples.cpu().double().numpy() * scale
+        mean = mean[0].cpu().double().numpy() * scale
+        return CoefficientSeries.from_samples(self.times_, mean, samples, self.state_names_,
+                                              self.feature_names_, self.support_,
+                                              self.time_varying_)
+
+    def predict(self, coefficients: CoefficientSeries | None = None) -> list[np.ndarray]:
+        """Derivatives Theta(x) Xi(t) on the training trajectories, one array each."""
+        coefficients = coefficients or self.coefficients(n_samples=1)
+        thetas = [np.asarray(a) for a in self.library_.transform(self.x_)]
+        return [np.einsum("tf,tnf->tn", th, coefficients.mean) for th in thetas]
+
+    def _check_fitted(self):
+        if not hasattr(self, "model_"):
+            raise RuntimeError("This DynamicSINDy is not fitted yet; call fit(x, t) first.")
+
+
+def _encoder_inputs(x, xdot):
+    """Standardised states and derivatives as encoder channels: (B, T, 2n)."""
+    xs = (x - x.mean(axis=(0, 1))) / np.maximum(x.std(axis=(0, 1)), 1e-12)
+    ds = xdot / np.maximum(np.sqrt(np.mean(xdot**2, axis=(0, 1))), 1e-12)
+    return np.concatenate([xs, ds], axis=-1)
+
+
+def _check_shared_times(times):
+    first = times[0]
+    for k, ti in enumerate(times[1:], start=1):
+        if ti.shape != first.shape or not np.allclose(ti - ti[0], first - first[0],
+                                                      rtol=1e-6, atol=1e-9):
+            raise ValueError(
+                "Trajectories must share the same time-varying dynamics on the same time "
+                f"grid; trajectory {k} has {ti.shape[0]} times vs {first.shape[0]} (or other "
+                "spacing). Resample them onto one grid."
+            )
+
+
+def _term_mask(spec, states, features, what, *, default, unnamed):
+    """Bool (n_states, n_features) mask from None (``default``), a dict naming the terms
+    of some states (states not named get ``unnamed``) or a bool array."""
+    shape = (len(states), len(features))
+    if spec is None:
+        return np.full(shape, default)
+    if isinstance(spec, dict):
+        mask = np.full(shape, unnamed)
+        for state, feats in spec.items():
+            if state not in states:
+                raise ValueError(f"{what} names state {state!r}; states are {list(states)}.")
+            if isinstance(feats, str):
+                feats = [feats]
+            mask[states.index(state)] = False
+            for f in feats:
+                if f not in features:
+                    raise ValueError(f"{what}[{state!r}] names feature {f!r}; library features "
+                                     f"are {list(features)}.")
+                mask[states.index(state), features.index(f)] = True
+        return mask
+    arr = np.asarray(spec)
+    if arr.shape != shape or arr.dtype != bool:
+        raise ValueError(f"{what} must be a dict {{state: [features]}} or a bool array of "
+                         f"shape {shape}; got {type(spec).__name__} with shape "
+                         f"{getattr(arr, 'shape', None)} and dtype {arr.dtype}.")
+    return arr.copy()
+
+
+def _free_rows(spec, states):
+    """Equations whose support is learned (not fixed by the user)."""
+    if spec is None:
+        return np.ones(len(states), dtype=bool)
+    if isinstance(spec, dict):
+        return np.array([s not in spec for s in states])
+    return np.zeros(len(states), dtype=bool)

@@ -1,0 +1,97 @@
+"""Frozen result objects of stage one."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import uniform_filter1d
+
+
+@dataclass(frozen=True)
+class CoefficientSeries:
+    """Time-varying SINDy coefficients with uncertainty, in physical units.
+
+    Attributes
+    ----------
+    times : ndarray, shape (n_times,)
+    mean : ndarray, shape (n_times, n_states, n_features)
+        Posterior-mean coefficients; ``mean[k]`` has the layout of pysindy's
+        ``SINDy.coefficients()`` at time ``times[k]``.
+    std : ndarray, shape (n_times, n_states, n_features)
+        Standard deviation across posterior samples.
+    samples : ndarray, shape (n_samples, n_times, n_states, n_features)
+    state_names, feature_names : tuple of str
+    support : ndarray of bool, shape (n_states, n_features)
+        Terms kept by the sparsity stage.
+    time_varying : ndarray of bool, shape (n_states, n_features)
+        Terms allowed to vary in time (the others are constants).
+    noise_across_samples : ndarray, shape (n_states, n_features)
+        The paper's first noise estimate: std across samples, averaged over time.
+    noise_around_smooth_mean : ndarray, shape (n_states, n_features)
+        The paper's second estimate: std over time of each sample around its own
+        smoothed version, averaged over samples.
+    """
+
+    times: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    samples: np.ndarray
+    state_names: tuple[str, ...]
+    feature_names: tuple[str, ...]
+    support: np.ndarray
+    time_varying: np.ndarray
+    noise_across_samples: np.ndarray
+    noise_around_smooth_mean: np.ndarray
+
+    @classmethod
+    def from_samples(cls, times, mean, samples, state_names, feature_names, support,
+                     time_varying) -> CoefficientSeries:
+        std = samples.std(axis=0) if samples.shape[0] > 1 else np.zeros_like(mean)
+        width = max(5, (len(times) // 50) | 1)
+        smooth = uniform_filter1d(samples, size=width, axis=1, mode="nearest")
+        around = (samples - smooth).std(axis=1).mean(axis=0)
+        arrays = [np.asarray(a) for a in (times, mean, std, samples, support, time_varying,
+                                          std.mean(axis=0), around)]
+        for a in arrays:
+            a.setflags(write=False)
+        t, m, s, smp, sup, tv, n1, n2 = arrays
+        return cls(t, m, s, smp, tuple(state_names), tuple(feature_names), sup, tv, n1, n2)
+
+    def term(self, state: str, feature: str) -> np.ndarray:
+        """Mean series of one coefficient, e.g. ``term("x", "y")``."""
+        return self.mean[:, self._state(state), self._feature(feature)]
+
+    def term_std(self, state: str, feature: str) -> np.ndarray:
+        return self.std[:, self._state(state), self._feature(feature)]
+
+    def _state(self, name):
+        if name not in self.state_names:
+            raise KeyError(f"Unknown state {name!r}; states are {list(self.state_names)}.")
+        return self.state_names.index(name)
+
+    def _feature(self, name):
+        if name not in self.feature_names:
+            raise KeyError(f"Unknown feature {name!r}; features are {list(self.feature_names)}.")
+        return self.feature_names.index(name)
+
+    def active_terms(self) -> list[tuple[str, str]]:
+        """(state, feature) pairs in the support."""
+        rows, cols = np.nonzero(self.support)
+        return [(self.state_names[i], self.feature_names[j]) for i, j in zip(rows, cols,
+                                                                              strict=True)]
+
+    def summary(self) -> str:
+        lines = [f"Time-varying SINDy coefficients: {len(self.times)} times, "
+                 f"{self.samples.shape[0]} samples"]
+        for i, s in enumerate(self.state_names):
+            parts = []
+            for j, f in enumerate(self.feature_names):
+                if not self.support[i, j]:
+                    continue
+                m = self.mean[:, i, j]
+                kind = "varies" if self.time_varying[i, j] else "constant"
+                parts.append(f"{f}: mean {m.mean():.4g}, range [{m.min():.4g}, {m.max():.4g}] "
+                             f"({kind})")
+            lines.append(f"  d{s}/dt: " + ("; ".join(parts) if parts else "0"))
+        return "\n".join(lines)

@@ -1,0 +1,57 @@
+"""The interface every coefficient generator implements, and the registry of generators.
+
+A generator is a ``torch.nn.Module`` that reads normalised trajectories and emits
+time-varying coefficient series. The estimator owns everything else (library, masks,
+constants, loss, pruning), so a new generator only has to implement :meth:`sample`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import torch
+from torch import nn
+
+
+class Generator(nn.Module):
+    """Base class: ``sample(inputs, n_samples)`` -> (series, kl).
+
+    Parameters of the call
+    ----------------------
+    inputs : Tensor, shape (n_trajectories, n_channels, n_times)
+        Normalised states and derivatives of trajectories that share one set of
+        time-varying dynamics.
+    n_samples : int
+        Number of posterior draws; ``0`` returns the posterior mean (one series).
+
+    Returns
+    -------
+    series : Tensor, shape (max(n_samples, 1), n_times, n_outputs)
+    kl : Tensor, scalar
+        KL divergence of the approximate posterior from the prior, summed over all
+        latent elements (the ELBO's KL term).
+    """
+
+    Options: type = object
+
+    def sample(self, inputs: torch.Tensor, n_samples: int) -> tuple[torch.Tensor, torch.Tensor]:
+        raise NotImplementedError
+
+
+def make_options(options_cls, given: dict[str, Any] | None, generator: str):
+    """Build a generator's frozen options; a misspelt option is an error."""
+    given = dict(given or {})
+    fields = {f.name for f in dataclasses.fields(options_cls)}
+    unknown = sorted(set(given) - fields)
+    if unknown:
+        raise TypeError(
+            f"Unknown option(s) {unknown} for generator {generator!r}; "
+            f"valid options are {sorted(fields)}."
+        )
+    return options_cls(**given)
+
+
+def gaussian_kl(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
+    """KL(N(mu, exp(logvar)) || N(0, 1)), summed over all latent elements."""
+    return 0.5 * torch.sum(mu.pow(2) + logvar.exp() - 1.0 - logvar)

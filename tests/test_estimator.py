@@ -1,0 +1,111 @@
+"""Stage one: units, structure, repeatability and the generator's contract."""
+
+import numpy as np
+import pysindy as ps
+import pytest
+import torch
+
+from latentsindy import CoefficientSeries, DynamicSINDy, systems
+from latentsindy.generators import TimeVAE, TimeVAEOptions
+
+
+def test_constant_system_gives_flat_true_coefficients():
+    """Known constants come back flat, in physical units, within 2%."""
+    data = systems.harmonic_oscillator(A=-2.0, B=1.5, t_end=20, n_times=1000, noise=0.01)
+    # physical scaling far from 1 checks the exact un-normalisation
+    x = data.x * np.array([300.0, 0.02])
+    model = DynamicSINDy(ps.PolynomialLibrary(degree=2), verbose=False)
+    coefs = model.fit(x, data.t, feature_names=["x", "y"]).coefficients(n_samples=8)
+    a_true = -2.0 * 300.0 / 0.02
+    b_true = 1.5 * 0.02 / 300.0
+    assert coefs.active_terms() == [("x", "y"), ("y", "x")]
+    a, b = coefs.term("x", "y"), coefs.term("y", "x")
+    assert np.max(np.abs(a / a_true - 1)) < 0.02
+    assert np.max(np.abs(b / b_true - 1)) < 0.02
+
+
+def test_physical_units_exact_for_non_polynomial_library():
+    """Pendulum with sin(theta): a Fourier + polynomial library, constants within 2%."""
+    from scipy.integrate import solve_ivp
+
+    t = np.linspace(0, 20, 1000)
+    sol = solve_ivp(lambda _, s: [s[1], -3.0 * np.sin(s[0])], (0, 20), [2.0, 0.0],
+                    t_eval=t, rtol=1e-10, atol=1e-10)
+    x = sol.y.T
+    lib = ps.PolynomialLibrary(degree=1, include_bias=False) + ps.FourierLibrary(n_frequencies=1)
+    model = DynamicSINDy(lib, verbose=False)
+    coefs = model.fit(x, t, feature_names=["q", "p"]).coefficients(n_samples=4)
+    assert set(coefs.active_terms()) == {("q", "p"), ("p", "sin(1 q)")}
+    assert np.max(np.abs(coefs.term("q", "p") - 1.0)) < 0.02
+    assert np.max(np.abs(coefs.term("p", "sin(1 q)") + 3.0)) < 0.06
+
+
+def test_encoder_conditions_on_data():
+    """Different inputs give different coefficients (the reference code ignored its input)."""
+    gen = TimeVAE(4, 6, TimeVAEOptions())
+    torch.nn.init.normal_(gen.to_coefficients.weight)  # the trained state: non-zero output
+    t = torch.linspace(0, 20, 400)
+    a = torch.stack([torch.sin(t), torch.cos(t), torch.cos(t), -torch.sin(t)])[None]
+    b = torch.stack([torch.sin(2 * t), torch.cos(3 * t), t / 10, t**2 / 100])[None]
+    out_a, _ = gen.sample(a, 0)
+    out_b, _ = gen.sample(b, 0)
+    assert (out_a - out_b).abs().mean() > 1e-3 * out_a.abs().mean()
+
+
+@pytest.mark.parametrize("n_times", [1000, 8000])
+def test_parameter_count_independent_of_length(n_times):
+    gen = TimeVAE(4, 20, TimeVAEOptions())
+    n = sum(p.numel() for p in gen.parameters())
+    series, _ = gen.sample(torch.randn(1, 4, n_times), 2)
+    assert series.shape == (2, n_times, 20)
+    assert n == sum(p.numel() for p in TimeVAE(4, 20, TimeVAEOptions()).parameters())
+    assert n < 50_000
+
+
+def test_seed_makes_runs_repeatable(fast):
+    data = systems.harmonic_oscillator(A=-1.0, n_times=300)
+    runs = [DynamicSINDy(verbose=False, training=fast, seed=3).fit(data.x, data.t)
+            .coefficients(n_samples=4) for _ in range(2)]
+    np.testing.assert_array_equal(runs[0].mean, runs[1].mean)
+    np.testing.assert_array_equal(runs[0].samples, runs[1].samples)
+
+
+def test_result_object(fast):
+    data = systems.harmonic_oscillator(A=-1.0, n_times=300)
+    model = DynamicSINDy(ps.PolynomialLibrary(degree=2), verbose=False, training=fast)
+    assert model.fit(data.x, data.t, feature_names=["x", "y"]) is model
+    c = model.coefficients(n_samples=5)
+    assert isinstance(c, CoefficientSeries)
+    assert c.mean.shape == c.std.shape == (300, 2, 6)
+    assert c.samples.shape == (5, 300, 2, 6)
+    assert c.feature_names == ("1", "x", "y", "x^2", "x y", "y^2")
+    assert c.state_names == ("x", "y")
+    assert c.noise_across_samples.shape == c.noise_around_smooth_mean.shape == (2, 6)
+    np.testing.assert_allclose(c.times, data.t)
+    with pytest.raises(ValueError, match="read-only"):
+        c.mean[0, 0, 0] = 1.0
+    assert "dx/dt" in c.summary()
+
+
+def test_fixed_support_and_constant_terms(fast):
+    data = systems.harmonic_oscillator(A=-1.0, B=systems.Sigmoid(1.0, 2.0, at=5.0), n_times=400)
+    model = DynamicSINDy(ps.PolynomialLibrary(degree=1, include_bias=False), verbose=False,
+                         training=fast, support={"x": ["y"]}, time_varying={"y": ["x"]})
+    c = model.fit(data.x, data.t, feature_names=["x", "y"]).coefficients(n_samples=4)
+    assert c.support[0].tolist() == [False, True]
+    assert c.time_varying.tolist() == [[False, False], [bool(c.support[1, 0]), False]]
+    assert np.ptp(c.term("x", "y")) == 0.0  # constant terms are exactly flat
+
+
+def test_several_trajectories_share_dynamics(fast):
+    a = systems.harmonic_oscillator(A=-1.0, n_times=300, x0=(1.0, 0.0))
+    b = systems.harmonic_oscillator(A=-1.0, n_times=300, x0=(0.0, 2.0))
+    model = DynamicSINDy(verbose=False, training=fast).fit([a.x, b.x], [a.t, b.t])
+    assert model.coefficients(n_samples=2).mean.shape == (300, 2, 6)
+    assert len(model.predict()) == 2
+
+
+def test_given_derivatives_are_used(fast):
+    data = systems.harmonic_oscillator(A=-1.0, n_times=300)
+    model = DynamicSINDy(verbose=False, training=fast).fit(data.x, data.t, x_dot=data.x_dot)
+    np.testing.assert_array_equal(model.x_dot_[0], data.x_dot)
