@@ -1,10 +1,18 @@
-"""latentsindy: discover hidden variables of dynamical systems with dynamic SINDy."""
+"""latentsindy: discover hidden variables of dynamical systems with dynamic SINDy.
+
+Public surface: :func:`discover_hidden` (observed series -> hidden states and a closed
+ODE), :class:`DynamicSINDy` (stage one: time-varying SINDy coefficients), :func:`load`,
+the result types, and :mod:`latentsindy.systems` (test beds with known truth).
+"""
 
 from importlib.metadata import PackageNotFoundError, version
 
 from . import systems
+from ._discovery import HiddenComparison, HiddenDiscovery, load
 from ._estimator import DynamicSINDy
+from ._hidden import discover_hidden
 from ._results import CoefficientSeries
+from ._simulate import Simulation
 from ._training import TrainingOptions
 
 try:
@@ -12,4 +20,15 @@ try:
 except PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0.0.0"
 
-__all__ = ["DynamicSINDy", "CoefficientSeries", "TrainingOptions", "systems", "__version__"]
+__all__ = [
+    "discover_hidden",
+    "DynamicSINDy",
+    "load",
+    "HiddenDiscovery",
+    "HiddenComparison",
+    "CoefficientSeries",
+    "Simulation",
+    "TrainingOptions",
+    "systems",
+    "__version__",
+]

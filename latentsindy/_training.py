@@ -129,7 +129,7 @@ def least_squares_constants(theta, xdot, support):
     return out
 
 
-def loss_terms(model, theta, xdot, weights, inputs, noise_var, n_samples=1):
+def loss_terms(model, theta, xdot, weights, inputs, noise_var, threshold, n_samples=1):
     """Loss terms on normalised data.
 
     ``weights`` (n_traj, n_times, n_states) are per-sample likelihood weights (inverse
@@ -149,7 +149,10 @@ def loss_terms(model, theta, xdot, weights, inputs, noise_var, n_samples=1):
     # A Laplace prior on increments in ELBO units would weigh the TV by the noise
     # variance times the number of increments: clean data are then fitted exactly.
     bayes = noise_var * xi.shape[1] * n_active.detach() / xdot.shape[-1]
-    return {"mse": mse, "kl": kl, "l1": size.sum(), "tv": tv,
+    # adaptive (reweighted) L1: small terms are pushed hard, large ones barely shrink,
+    # so the penalty selects terms without biasing the ones that stay
+    l1 = (size / (size.detach() + threshold)).sum()
+    return {"mse": mse, "kl": kl, "l1": l1, "tv": tv,
             "tv_bayes": min(1.0, max(0.01, float(bayes)))}
 
 
@@ -172,7 +175,8 @@ def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
         for step in range(steps):
             for g in opt.param_groups:
                 g["lr"] = _cosine(step, steps, lr0, lr0 * 1e-2)
-            terms = loss_terms(model, theta, xdot, weights, inputs, noise_var)
+            terms = loss_terms(model, theta, xdot, weights, inputs, noise_var,
+                               options.threshold)
             if phase == 1:
                 reg = options.sparsity * terms["l1"] + options.smoothness * terms["tv"]
             else:
