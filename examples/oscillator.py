@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
 import pysindy as ps
 
 from latentsindy import discover_hidden, systems

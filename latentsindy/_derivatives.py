@@ -41,16 +41,30 @@ def choose_window(x: np.ndarray, max_window: int | None = None) -> int:
     return best
 
 
+def _savgol_derivative(x, window, dt):
+    """Savitzky-Golay derivative along axis 0; within half a window of either end a
+    half-width window is used, which cuts the polynomial-extrapolation bias there."""
+    out = savgol_filter(x, window, _POLYORDER, deriv=1, delta=dt, axis=0, mode="interp")
+    edge = max(_POLYORDER + 2, (window // 2) | 1)
+    if edge < window and x.shape[0] >= window:
+        half = window // 2
+        head = savgol_filter(x[:window], edge, _POLYORDER, deriv=1, delta=dt, axis=0,
+                             mode="interp")
+        tail = savgol_filter(x[-window:], edge, _POLYORDER, deriv=1, delta=dt, axis=0,
+                             mode="interp")
+        out[:half] = head[:half]
+        out[-half:] = tail[-half:]
+    return out
+
+
 def _edge_profile(n, window, dt):
-    """Per-sample white-noise gain of the Savitzky-Golay derivative (larger at the edges)."""
+    """Per-sample white-noise gain of :func:`_savgol_derivative` (larger at the edges)."""
     k = min(n, 2 * window)
     impulses = np.zeros((n, k))
     impulses[np.arange(k), np.arange(k)] = 1.0
-    response = savgol_filter(impulses, window, _POLYORDER, deriv=1, delta=dt, axis=0,
-                             mode="interp")
+    head = np.sum(_savgol_derivative(impulses, window, dt)[:window] ** 2, axis=1)
     interior = np.sum(savgol_coeffs(window, _POLYORDER, deriv=1, delta=dt) ** 2)
     gain = np.full(n, interior)
-    head = np.sum(response[:window] ** 2, axis=1)
     gain[:window] = np.maximum(head, interior)
     gain[n - window:] = np.maximum(gain[n - window:], head[::-1][-min(window, n):])
     return gain
@@ -90,8 +104,7 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
             w = min(w, x.shape[0] - (1 - x.shape[0] % 2))
             smooth[:, j] = savgol_filter(x[:, j], w, _POLYORDER, mode="interp")
             if uniform:
-                out[:, j] = savgol_filter(x[:, j], w, _POLYORDER, deriv=1,
-                                          delta=float(steps.mean()), mode="interp")
+                out[:, j] = _savgol_derivative(x[:, j], w, float(steps.mean()))
         if not uniform:  # savgol assumes uniform spacing; difference the smoothed series
             tt = np.concatenate([[0.0], np.cumsum(steps)])
             out = np.gradient(smooth, tt, axis=0, edge_order=2)
@@ -131,8 +144,8 @@ def differentiate(method, trajectories, times):
     """Apply a pysindy differentiation method to each trajectory; reject NaN edges.
 
     Returns the derivatives, the derivative noise std per state, and per-sample
-    likelihood weights (the inverse relative noise variance: < 1 near the edges,
-    where a smoothing differentiator extrapolates).
+    likelihood weights (the inverse relative noise variance; zero within half a window
+    of either end, where a smoothing differentiator extrapolates).
     """
     method = method if method is not None else default_differentiation()
     if not callable(method):
@@ -153,5 +166,10 @@ def differentiate(method, trajectories, times):
         profile = getattr(method, "noise_profile_", None)
         weights.append(1.0 / profile if profile is not None and profile.shape == x.shape
                        else np.ones_like(x))
+        for j, w in enumerate(getattr(method, "windows_", [])[:x.shape[1]]):
+            # within half a window of either end the derivative is extrapolated: it is
+            # noisier and biased, so it does not enter the likelihood at all
+            weights[-1][: w // 2, j] = 0.0
+            weights[-1][x.shape[0] - w // 2:, j] = 0.0
         out.append(d)
     return out, np.mean(noise, axis=0), weights

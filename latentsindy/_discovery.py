@@ -68,15 +68,16 @@ class HiddenDiscovery:
     all_times: list = field(repr=False)
     all_observed: list = field(repr=False)
     all_hidden: list = field(repr=False)
+    initial_state: np.ndarray = field(repr=False, default=None)
     closure_candidates: list = field(repr=False, default_factory=list)
 
     @classmethod
     def build(cls, *, times, observed, hidden, hidden_std, observed_names, hidden_names,
-              hidden_terms, rhs, sindy, coefficients, closure_candidates=()):
+              hidden_terms, rhs, sindy, coefficients, initial_state, closure_candidates=()):
         return cls(times[0], observed[0], hidden[0], hidden_std[0], tuple(observed_names),
                    tuple(hidden_names), tuple(tuple(p) for p in hidden_terms), dict(rhs), sindy,
                    coefficients, list(times), list(observed), list(hidden),
-                   list(closure_candidates))
+                   np.asarray(initial_state, dtype=float), list(closure_candidates))
 
     # ----------------------------------------------------------- views
     @property
@@ -107,11 +108,12 @@ class HiddenDiscovery:
     def simulate(self, t=None, x0=None, *, max_steps=20_000) -> Simulation:
         """Integrate the closed system with torchdiffeq (dopri5, finite step budget).
 
-        ``x0`` defaults to the first observed plus hidden state; a blow-up or an
+        ``x0`` defaults to the first observed (as smoothed by the differentiator, so
+        measurement noise does not set the start) plus hidden state; a blow-up or an
         exhausted budget is reported in the result's ``status``, never a hang.
         """
         t = self.times if t is None else np.asarray(t, dtype=float)
-        x0 = self.states[0] if x0 is None else np.asarray(x0, dtype=float)
+        x0 = self.initial_state if x0 is None else np.asarray(x0, dtype=float)
         if x0.shape != (len(self.state_names),):
             raise ValueError(f"x0 must have shape ({len(self.state_names)},) for states "
                              f"{list(self.state_names)}; got shape {x0.shape}.")
@@ -158,6 +160,7 @@ class HiddenDiscovery:
             "state_names_stage_one": self.coefficients.state_names,
             "feature_names_stage_one": self.coefficients.feature_names,
             "n_trajectories": len(self.all_times),
+            "initial_state": self.initial_state.tolist(),
         }
         arrays = {"meta": np.array(json.dumps(meta))}
         for k, (tk, xk, hk) in enumerate(zip(self.all_times, self.all_observed, self.all_hidden,
@@ -177,7 +180,7 @@ def load(path) -> HiddenDiscovery:
     rebuilt by sympy's parser. The pysindy model is not stored (``sindy`` is None).
     """
     with np.load(Path(path), allow_pickle=False) as data:
-        meta = json.loads(str(data["meta"]))
+        meta = json.loads(str(data["meta"])) if "meta" in data.files else {}
         if meta.get("format") != _FORMAT:
             raise ValueError(f"{path} is not a saved HiddenDiscovery (format "
                              f"{meta.get('format')!r}, expected {_FORMAT!r}).")
@@ -199,7 +202,7 @@ def load(path) -> HiddenDiscovery:
                                  hidden_std=[hidden_std], observed_names=meta["observed_names"],
                                  hidden_names=meta["hidden_names"],
                                  hidden_terms=meta["hidden_terms"], rhs=rhs, sindy=None,
-                                 coefficients=coefs)
+                                 coefficients=coefs, initial_state=meta["initial_state"])
 
 
 def _short(expr):

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import copy
+
 import numpy as np
 import torch
 
@@ -101,10 +104,13 @@ class DynamicSINDy:
         times = val.as_times(t, trajs)
         _check_shared_times(times)
         names = val.check_feature_names(feature_names, trajs[0].shape[1])
-        if not isinstance(self.seed, int | np.integer) or self.seed < 0:
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int | np.integer):
             raise TypeError(f"seed must be a non-negative int; got {self.seed!r}.")
+        if self.seed < 0:
+            raise ValueError(f"seed must be a non-negative int; got {self.seed}.")
         if x_dot is None:
-            xdots, noise_std, weights = differentiate(self.differentiation_method, trajs, times)
+            method = copy.deepcopy(self.differentiation_method)  # never mutate the user's
+            xdots, noise_std, weights = differentiate(method, trajs, times)
         else:
             xdots = val.as_trajectories(x_dot, "x_dot")
             if [d.shape for d in xdots] != [tr.shape for tr in trajs]:
@@ -135,28 +141,43 @@ class DynamicSINDy:
         theta_n = as_t(theta / self.feature_scale_)
         xdot_n = as_t(xdot / self.derivative_scale_)
         weights_t = as_t(np.stack(weights))
-        self._inputs = as_t(_encoder_inputs(np.stack(trajs), xdot).transpose(0, 2, 1))
+        inputs = as_t(_encoder_inputs(np.stack(trajs), xdot).transpose(0, 2, 1))
 
-        torch.manual_seed(self.seed)
-        gen = build_generator(self.generator, self._inputs.shape[1], support.size,
-                              self.generator_options, self.seed)
-        support_t = torch.as_tensor(support, device=dev)
-        constants = least_squares_constants(theta_n, xdot_n, support_t)
-        self.model_ = CoefficientModel(gen, constants, support_t,
-                                       torch.as_tensor(varying, dtype=torch.float32)).to(dev)
-        self.history_ = train(self.model_, theta_n, xdot_n, weights_t, self._inputs,
-                              self.noise_variance_,
-                              torch.as_tensor(free_rows, device=dev), options, self.verbose)
-        self.model_.eval()
+        with _seeded(self.seed, dev):  # repeatable, and the caller's RNG state is untouched
+            gen = build_generator(self.generator, inputs.shape[1], support.size,
+                                  self.generator_options, self.seed)
+            support_t = torch.as_tensor(support, device=dev)
+            constants = least_squares_constants(theta_n, xdot_n, support_t)
+            model = CoefficientModel(gen, constants, support_t,
+                                     torch.as_tensor(varying, dtype=torch.float32)).to(dev)
+            self.history_ = train(model, theta_n, xdot_n, weights_t, inputs,
+                                  self.noise_variance_, torch.as_tensor(free_rows, device=dev),
+                                  options, self.verbose)
+        model.eval()
+        self.encoder_inputs_ = inputs
         self.library_ = library
         self.state_names_ = tuple(names)
         self.feature_names_ = tuple(feature_list)
         self.times_ = times[0]
         self.x_ = trajs
         self.x_dot_ = xdots
-        self.support_ = self.model_.support.cpu().numpy().copy()
+        self.support_ = model.support.cpu().numpy().copy()
         self.time_varying_ = varying & self.support_
         self.n_parameters_ = sum(p.numel() for p in gen.parameters())
+        self.model_ = model  # last: a fit that fails midway leaves the estimator unfitted
+        return self
+
+    def get_params(self, deep=True):
+        """Constructor parameters (scikit-learn convention)."""
+        return {k: getattr(self, k) for k in _PARAMS}
+
+    def set_params(self, **params):
+        """Set constructor parameters; unknown names are an error."""
+        unknown = sorted(set(params) - set(_PARAMS))
+        if unknown:
+            raise ValueError(f"Unknown parameter(s) {unknown}; valid ones are {list(_PARAMS)}.")
+        for k, v in params.items():
+            setattr(self, k, v)
         return self
 
     # ------------------------------------------------------------ results
@@ -164,15 +185,9 @@ class DynamicSINDy:
         """Posterior mean, spread and samples of Xi(t) in physical units."""
         self._check_fitted()
         n_samples = val.check_positive(n_samples, "n_samples", integer=True)
-        gen = torch.Generator(device="cpu").manual_seed(self.seed + 1)
-        with torch.no_grad():
-            state = torch.random.get_rng_state()
-            torch.random.set_rng_state(gen.get_state())
-            try:
-                samples, _ = self.model_(self._inputs, int(n_samples))
-            finally:
-                torch.random.set_rng_state(state)
-            mean, _ = self.model_(self._inputs, 0)
+        with torch.no_grad(), _seeded(self.seed + 1, self.encoder_inputs_.device):
+            samples, _ = self.model_(self.encoder_inputs_, int(n_samples))
+            mean, _ = self.model_(self.encoder_inputs_, 0)
         scale = self.derivative_scale_[:, None] / self.feature_scale_[None, :]
         samples = samples.cpu().double().numpy() * scale
         mean = mean[0].cpu().double().numpy() * scale
@@ -182,6 +197,7 @@ class DynamicSINDy:
 
     def predict(self, coefficients: CoefficientSeries | None = None) -> list[np.ndarray]:
         """Derivatives Theta(x) Xi(t) on the training trajectories, one array each."""
+        self._check_fitted()
         coefficients = coefficients or self.coefficients(n_samples=1)
         thetas = [np.asarray(a) for a in self.library_.transform(self.x_)]
         return [np.einsum("tf,tnf->tn", th, coefficients.mean) for th in thetas]
@@ -189,6 +205,19 @@ class DynamicSINDy:
     def _check_fitted(self):
         if not hasattr(self, "model_"):
             raise RuntimeError("This DynamicSINDy is not fitted yet; call fit(x, t) first.")
+
+
+_PARAMS = ("library", "generator", "generator_options", "training", "differentiation_method",
+           "support", "time_varying", "device", "verbose", "seed")
+
+
+@contextlib.contextmanager
+def _seeded(seed, device):
+    """Seed torch inside the block and restore the caller's RNG state afterwards."""
+    devices = [device] if torch.device(device).type == "cuda" else []
+    with torch.random.fork_rng(devices=devices):
+        torch.manual_seed(seed)
+        yield
 
 
 def _encoder_inputs(x, xdot):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pysindy as ps
 import sympy as sp
@@ -11,7 +13,7 @@ from ._closure import fit_closure
 from ._derivatives import AdaptiveSavitzkyGolay
 from ._discovery import HiddenDiscovery
 from ._estimator import DynamicSINDy
-from ._library import feature_expressions, state_symbols
+from ._library import check_library, feature_expressions, fit_library, state_symbols
 
 VARIATION_SIGMAS = 3.0  # variation must exceed this many posterior std ...
 VARIATION_RELATIVE = 0.05  # ... and this fraction of the coefficient's mean size
@@ -65,6 +67,9 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     if not isinstance(closure_library, ps.feature_library.base.BaseFeatureLibrary):
         raise TypeError("closure_library must be a pysindy feature library; got "
                         f"{type(closure_library).__name__}.")
+    val.check_positive(n_samples, "n_samples", integer=True)
+    _, features = fit_library(check_library(library), trajs[:1], names)
+    _check_hidden_request(hidden_terms, hidden_names, names, features)
 
     # Stage one, one model per trajectory: hidden states differ between trajectories.
     # Later trajectories reuse the first one's support so the equations are shared.
@@ -87,7 +92,6 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
             "name it with hidden_terms=[(state, feature)].")
 
     # Observed equations: Theta(x) Xi with constants averaged and hidden states substituted
-    xs = state_symbols(names)
     hs = state_symbols(hidden_names)
     feats = feature_expressions(fits[0].library_, first.feature_names, names)
     constants = np.mean([c.mean.mean(axis=0) for c in coefs], axis=0) * first.support
@@ -121,6 +125,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     stds = [np.stack([c.std[:, i, j] for i, j in index], axis=1) for c in coefs]
     return HiddenDiscovery.build(
         times=times, observed=trajs, hidden=hidden, hidden_std=stds,
+        initial_state=np.concatenate([smooth_obs[0][0], hidden[0][0]]),
         observed_names=tuple(names), hidden_names=tuple(hidden_names),
         hidden_terms=tuple(hidden_pairs), rhs=rhs, sindy=sindy, coefficients=first,
         closure_candidates=table,
@@ -130,10 +135,33 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
 def _smoothed(model, x, t):
     """The observed states as the stage-one differentiator smoothed them (less noise in
     the closure library), or the raw data when the method keeps no smoothed copy."""
-    method = model.differentiation_method or AdaptiveSavitzkyGolay()
+    method = copy.deepcopy(model.differentiation_method) or AdaptiveSavitzkyGolay()
     method(x, t)
     smooth = getattr(method, "smoothed_x_", None)
     return np.asarray(smooth) if smooth is not None and np.shape(smooth) == x.shape else x
+
+
+def _check_hidden_request(hidden_terms, hidden_names, states, features):
+    """Validate hidden_terms / hidden_names before any training."""
+    if hidden_terms is not None:
+        pairs = []
+        for p in hidden_terms:
+            if (not isinstance(p, list | tuple) or len(p) != 2 or p[0] not in states
+                    or p[1] not in features):
+                raise ValueError(
+                    f"hidden_terms entries must be (state, feature) pairs with state in "
+                    f"{list(states)} and feature in {list(features)}; got {p!r}.")
+            pairs.append(tuple(p))
+        if len(set(pairs)) != len(pairs):
+            raise ValueError(f"hidden_terms has duplicates: {pairs}.")
+        if hidden_names is not None and len(hidden_names) != len(pairs):
+            raise ValueError(f"hidden_names has {len(hidden_names)} name(s) but "
+                             f"{len(pairs)} hidden state(s) were requested in hidden_terms.")
+    if hidden_names is not None:
+        names = val.check_feature_names(hidden_names, len(hidden_names), "hidden_names")
+        clash = set(names) & set(states)
+        if clash:
+            raise ValueError(f"hidden_names {sorted(clash)} clash with the observed state names.")
 
 
 def _hidden_pairs(coefs, hidden_terms):
@@ -142,11 +170,6 @@ def _hidden_pairs(coefs, hidden_terms):
         pairs = [tuple(p) for p in hidden_terms]
         active = set(first.active_terms())
         for p in pairs:
-            if len(p) != 2 or p[0] not in first.state_names or p[1] not in first.feature_names:
-                raise ValueError(
-                    f"hidden_terms entries must be (state, feature) pairs with state in "
-                    f"{list(first.state_names)} and feature in {list(first.feature_names)}; "
-                    f"got {p!r}.")
             if p not in active:
                 raise ValueError(f"hidden term {p!r} was removed by the sparsity stage "
                                  f"(active terms: {sorted(active)}); fix it with support=.")
@@ -171,8 +194,4 @@ def _hidden_names(names, n_hidden, observed, pairs):
         raise ValueError(f"hidden_names has {len(names)} name(s) but {n_hidden} hidden state(s) "
                          f"were found: coefficients {pairs}. Pass {n_hidden} names, or choose "
                          "the hidden states with hidden_terms=[(state, feature), ...].")
-    names = val.check_feature_names(names, n_hidden, "hidden_names")
-    clash = set(names) & set(observed)
-    if clash:
-        raise ValueError(f"hidden_names {sorted(clash)} clash with the observed state names.")
-    return names
+    return list(names)

@@ -51,8 +51,8 @@ class CoefficientSeries:
         width = max(5, (len(times) // 50) | 1)
         smooth = uniform_filter1d(samples, size=width, axis=1, mode="nearest")
         around = (samples - smooth).std(axis=1).mean(axis=0)
-        arrays = [np.asarray(a) for a in (times, mean, std, samples, support, time_varying,
-                                          std.mean(axis=0), around)]
+        arrays = [np.array(a, copy=True) for a in (times, mean, std, samples, support,
+                                                   time_varying, std.mean(axis=0), around)]
         for a in arrays:
             a.setflags(write=False)
         t, m, s, smp, sup, tv, n1, n2 = arrays

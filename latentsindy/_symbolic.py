@@ -7,18 +7,6 @@ import sympy as sp
 import torch
 
 
-def linear_combination(coefficients, features, *, tol=0.0):
-    """``sum_j coefficients[j] * features[j]`` with exact zeros dropped."""
-    terms = [sp.Float(float(c)) * f for c, f in zip(coefficients, features, strict=True)
-             if abs(float(c)) > tol]
-    return sp.Add(*terms) if terms else sp.Integer(0)
-
-
-def tidy(expr):
-    """Expand and collect so equal monomials merge; floats are kept as fitted."""
-    return sp.expand(expr)
-
-
 class VectorField:
     """The closed system ``d state/dt = rhs(state)`` as a fast callable.
 

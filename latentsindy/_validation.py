@@ -33,8 +33,14 @@ def _as_2d(x, what: str) -> np.ndarray:
     return arr
 
 
+def _ragged(rows) -> bool:
+    return len({np.shape(r) for r in rows}) > 1
+
+
 def as_trajectories(x, what: str = "x") -> list[np.ndarray]:
     """Return a list of finite 2-D float arrays with a common number of states."""
+    if isinstance(x, list | tuple) and len(x) > 0 and np.ndim(x[0]) <= 1:
+        x = np.asarray(x, dtype=object if _ragged(x) else None)  # rows or numbers: one series
     if isinstance(x, list | tuple):
         if len(x) == 0:
             raise ValueError(f"{what} is an empty list; pass at least one trajectory.")
@@ -77,7 +83,7 @@ def _one_times(t, n_times: int, what: str) -> np.ndarray:
         if not np.isfinite(dt) or dt <= 0:
             raise ValueError(f"The sample spacing {what} must be a positive number; got {t!r}.")
         return np.arange(n_times) * dt
-    arr = np.asarray(t, dtype=float)
+    arr = np.array(t, dtype=float, copy=True)
     if arr.ndim != 1:
         raise ValueError(f"{what} must be 1-D; got shape {arr.shape}.")
     if arr.shape[0] != n_times:
@@ -112,12 +118,6 @@ def check_feature_names(names, n_states: int, what: str = "feature_names") -> li
                 f"{what} must be valid identifiers (letters, digits, underscores); got {n!r}."
             )
     return names
-
-
-def check_choice(value, choices, what: str):
-    if value not in choices:
-        raise ValueError(f"{what} must be one of {sorted(choices)}; got {value!r}.")
-    return value
 
 
 def check_positive(value, what: str, *, allow_zero: bool = False, integer: bool = False):

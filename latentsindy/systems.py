@@ -188,7 +188,8 @@ def _simulate(rhs, x0, t, parameters, coefficient_noise, rng):
     """Integrate ``rhs(t, x, params)`` with params sampled on the time grid."""
     series = {k: np.asarray(f(t), dtype=float) for k, f in parameters.items()}
     if coefficient_noise:
-        series = {k: v + coefficient_noise * rng.standard_normal(v.shape) for k, v in series.items()}
+        series = {k: v + coefficient_noise * rng.standard_normal(v.shape)
+                  for k, v in series.items()}
 
     def at(ti):
         return {k: np.interp(ti, t, v) for k, v in series.items()}

@@ -33,6 +33,9 @@ def test_oscillator_time_varying_A(shape):
     found = transition_time(data.t, a, -1.0, -4.0)
     assert abs(found - 12.0) / T_END <= 0.02
     assert np.max(np.abs(coefs.term("y", "x") - 1.0)) < 0.05
-    # the band is meaningful: most of the truth lies within 5 std of the mean, away
-    # from the switch itself
-    assert np.all(coefs.std >= 0)
+    # away from the transition the truth lies inside the posterior band (mean +- 5 std,
+    # plus 1% for the smoothing bias the band does not model)
+    far = np.abs(data.t - 12.0) > 2.0
+    err = np.abs(a - data.parameters["A"])[far]
+    band = 5 * coefs.term_std("x", "y")[far] + 0.01 * np.abs(a[far])
+    assert np.mean(err <= band) > 0.9

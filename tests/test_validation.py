@@ -40,7 +40,7 @@ def test_wrong_shape(data):
 
 def test_not_numeric():
     with pytest.raises(TypeError, match="numeric array"):
-        fit([["a", "b"]] * 20, 0.1)
+        fit(np.array([["a", "b"]] * 20), 0.1)
 
 
 def test_t_not_increasing(data):
@@ -132,5 +132,7 @@ def test_coefficients_before_fit():
 
 
 def test_bad_seed(data):
-    with pytest.raises(TypeError, match="seed must be a non-negative int"):
+    with pytest.raises(ValueError, match="seed must be a non-negative int; got -1"):
         fit(data.x, data.t, init={"seed": -1})
+    with pytest.raises(TypeError, match="seed must be a non-negative int; got True"):
+        fit(data.x, data.t, init={"seed": True})

@@ -14,7 +14,7 @@ def build_generator(name: str, n_inputs: int, n_outputs: int, options, seed: int
         raise ValueError(f"generator must be one of {sorted(GENERATORS)}; got {name!r}.")
     cls = GENERATORS[name]
     opts = make_options(cls.Options, options, name)
-    torch.manual_seed(seed)
+    torch.manual_seed(seed)  # callers wrap this in a forked RNG
     return cls(n_inputs, n_outputs, opts)
 
 
