@@ -9,7 +9,7 @@ import numpy as np
 import pysindy as ps
 
 N_FOLDS = 5
-TOLERANCE = 0.05  # accept a sparser model whose held-out error is within 5% of the best
+TOLERANCE = 0.05  # a sparser model is accepted within max(1 standard error, 5%) of the best
 N_THRESHOLDS = 30
 
 
@@ -18,9 +18,9 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
 
     STLSQ (normalised columns, unbiased) is run along a geometric grid of thresholds;
     every distinct support is scored by cross-validation over contiguous time blocks,
-    and the sparsest support whose held-out error is within 5% of the best wins. No
-    threshold needs tuning, and noise that would let spurious terms in is caught by
-    the held-out error.
+    and the sparsest support whose held-out error is within one standard error (across
+    folds; at least 5%) of the best wins: the "one-standard-error rule". No threshold
+    needs tuning, and terms that only fit noise do not beat it.
 
     Returns
     -------
@@ -47,13 +47,14 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
         seen.add(key)
         theta = np.vstack([np.asarray(a) for a in model.feature_library.transform(
             [np.hstack([h, u]) for h, u in zip(hidden, observed, strict=True)])])
-        err = _cv_error(theta, target, coef != 0)
-        candidates.append((thr * (top or 1.0), int((coef != 0).sum()), err, model))
-    best_err = min(c[2] for c in candidates)
-    ok = [c for c in candidates if c[2] <= best_err * (1 + TOLERANCE)]
+        err, se = _cv_error(theta, target, coef != 0)
+        candidates.append((thr * (top or 1.0), int((coef != 0).sum()), err, se, model))
+    best = min(candidates, key=lambda c: c[2])
+    limit = best[2] + max(best[3], TOLERANCE * best[2])
+    ok = [c for c in candidates if c[2] <= limit]
     chosen = min(ok, key=lambda c: (c[1], c[2]))
     table = [(c[0], c[1], c[2]) for c in candidates]
-    return chosen[3], table
+    return chosen[4], table
 
 
 def _fit(threshold, hidden, hidden_dot, observed, times, library, names):
@@ -76,20 +77,21 @@ def _normalised_max(model, hidden, observed):
 
 
 def _cv_error(theta, target, support):
-    """Held-out error (relative to each target's variance) of least squares on support."""
+    """Held-out error (relative to each target's variance) of least squares on support,
+    and its standard error across the folds."""
     n = len(target)
     edges = np.linspace(0, n, N_FOLDS + 1).astype(int)
-    total = 0.0
+    folds = np.zeros(N_FOLDS)
     for k in range(target.shape[1]):
         cols = np.flatnonzero(support[k])
-        err = 0.0
-        for a, b in zip(edges[:-1], edges[1:], strict=True):
+        scale = n * max(float(np.var(target[:, k])), 1e-300)
+        for f, (a, b) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
             train = np.r_[0:a, b:n]
             pred = np.zeros(b - a)
             if len(cols):
                 coef, *_ = np.linalg.lstsq(theta[np.ix_(train, cols)], target[train, k],
                                            rcond=None)
                 pred = theta[a:b, cols] @ coef
-            err += float(np.sum((target[a:b, k] - pred) ** 2))
-        total += err / (n * max(float(np.var(target[:, k])), 1e-300))
-    return total
+            folds[f] += float(np.sum((target[a:b, k] - pred) ** 2)) / scale
+    total = float(folds.sum())
+    return total, float(np.std(folds * N_FOLDS, ddof=1) / np.sqrt(N_FOLDS))

@@ -64,7 +64,7 @@ class TrainingOptions:
     warmup: float = 0.25
     ramp: float = 0.75
     kl_weight: float = 1.0
-    sparsity: float = 0.03
+    sparsity: float = 0.1
     smoothness: float = 0.3
     refit_smoothness: float = 2.0
     grad_clip: float = 1.0
