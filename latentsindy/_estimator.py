@@ -145,7 +145,7 @@ class DynamicSINDy:
 
         with _seeded(self.seed, dev):  # repeatable, and the caller's RNG state is untouched
             gen = build_generator(self.generator, inputs.shape[1], support.size,
-                                  self.generator_options, self.seed)
+                                  self.generator_options)
             support_t = torch.as_tensor(support, device=dev)
             constants = least_squares_constants(theta_n, xdot_n, support_t)
             model = CoefficientModel(gen, constants, support_t,
