@@ -12,6 +12,7 @@ from ._discovery import HiddenComparison, HiddenDiscovery, load
 from ._estimator import DynamicSINDy
 from ._hidden import discover_hidden
 from ._results import CoefficientSeries
+from ._sequential import SequentialTrainingOptions
 from ._simulate import Simulation
 from ._training import TrainingOptions
 
@@ -29,6 +30,7 @@ __all__ = [
     "CoefficientSeries",
     "Simulation",
     "TrainingOptions",
+    "SequentialTrainingOptions",
     "systems",
     "__version__",
 ]

@@ -12,13 +12,20 @@ from . import _validation as val
 from ._derivatives import differentiate, noise_level
 from ._library import check_library, fit_library
 from ._results import CoefficientSeries
+from ._sequential import (
+    SequentialCoefficientModel,
+    SequentialTrainingOptions,
+    train_sequential,
+    windowed_constants,
+)
 from ._training import (
     CoefficientModel,
+    TrainingOptions,
     least_squares_constants,
     make_training_options,
     train,
 )
-from .generators import build_generator
+from .generators import build_generator, generator_class
 
 
 class DynamicSINDy:
@@ -32,12 +39,16 @@ class DynamicSINDy:
     ----------
     library : pysindy feature library, optional
         Candidate functions Theta (default ``PolynomialLibrary(degree=2)``).
-    generator : {"timevae"}
-        The deep generative model mapping the series to coefficient series.
+    generator : {"timevae", "hypersindy"}
+        The deep generative model mapping the series to coefficient series:
+        ``"timevae"`` reads the whole series at once (best up to a few thousand
+        samples); ``"hypersindy"`` (dynamic HyperSINDy) reads it window by window,
+        with memory independent of the series length.
     generator_options : dict, optional
         Architecture options of the generator (e.g. ``{"latent_dim": 8}``).
-    training : TrainingOptions or dict, optional
-        Loss weights, steps and pruning threshold (see :class:`TrainingOptions`).
+    training : TrainingOptions, SequentialTrainingOptions or dict, optional
+        Loss weights, steps and pruning threshold: :class:`TrainingOptions` for
+        ``"timevae"``, :class:`SequentialTrainingOptions` for ``"hypersindy"``.
     differentiation_method : pysindy differentiation object, optional
         Used when ``x_dot`` is not given (default: a noise-adaptive Savitzky-Golay).
     support : dict or bool array, optional
@@ -99,7 +110,10 @@ class DynamicSINDy:
         -------
         self
         """
-        options = make_training_options(self.training)
+        sequential = getattr(generator_class(self.generator), "sequential", False)
+        options = make_training_options(
+            self.training, SequentialTrainingOptions if sequential else TrainingOptions,
+            self.generator)
         trajs = val.as_trajectories(x, "x")
         times = val.as_times(t, trajs)
         _check_shared_times(times)
@@ -147,12 +161,17 @@ class DynamicSINDy:
             gen = build_generator(self.generator, inputs.shape[1], support.size,
                                   self.generator_options)
             support_t = torch.as_tensor(support, device=dev)
-            constants = least_squares_constants(theta_n, xdot_n, support_t)
-            model = CoefficientModel(gen, constants, support_t,
-                                     torch.as_tensor(varying, dtype=torch.float32)).to(dev)
-            self.history_ = train(model, theta_n, xdot_n, weights_t, inputs,
-                                  self.noise_variance_, torch.as_tensor(free_rows, device=dev),
-                                  options, self.verbose)
+            if sequential:
+                constants = windowed_constants(theta_n, xdot_n, support_t, options.window)
+            else:
+                constants = least_squares_constants(theta_n, xdot_n, support_t)
+            model_cls, fit_fn = ((SequentialCoefficientModel, train_sequential) if sequential
+                                 else (CoefficientModel, train))
+            model = model_cls(gen, constants, support_t,
+                              torch.as_tensor(varying, dtype=torch.float32)).to(dev)
+            self.history_ = fit_fn(model, theta_n, xdot_n, weights_t, inputs,
+                                   self.noise_variance_, torch.as_tensor(free_rows, device=dev),
+                                   options, self.verbose)
         model.eval()
         self.encoder_inputs_ = inputs
         self.library_ = library

@@ -87,20 +87,22 @@ class TrainingOptions:
                              f"got {self.learning_rate}")
 
 
-def make_training_options(given) -> TrainingOptions:
+def make_training_options(given, cls=None, generator="timevae"):
+    """Validated training options of class ``cls`` (the one ``generator`` trains with)."""
+    cls = cls or TrainingOptions
     if given is None:
-        return TrainingOptions()
-    if isinstance(given, TrainingOptions):
+        return cls()
+    if isinstance(given, cls):
         return given
     if isinstance(given, dict):
-        names = {f.name for f in fields(TrainingOptions)}
+        names = {f.name for f in fields(cls)}
         unknown = sorted(set(given) - names)
         if unknown:
-            raise TypeError(f"Unknown training option(s) {unknown}; valid options are "
-                            f"{sorted(names)}.")
-        return TrainingOptions(**given)
-    raise TypeError(f"training must be a TrainingOptions, a dict or None; got "
-                    f"{type(given).__name__}.")
+            raise TypeError(f"Unknown training option(s) {unknown} for generator "
+                            f"{generator!r}; valid options are {sorted(names)}.")
+        return cls(**given)
+    raise TypeError(f"training for generator {generator!r} must be a {cls.__name__}, a dict "
+                    f"or None; got {type(given).__name__}.")
 
 
 class CoefficientModel(nn.Module):

@@ -1,17 +1,24 @@
 """Coefficient generators (stage one's deep generative models)."""
 
 from ._base import Generator, make_options
+from .hypersindy import HyperSINDy, HyperSINDyOptions
 from .timevae import TimeVAE, TimeVAEOptions
 
-GENERATORS: dict[str, type[Generator]] = {"timevae": TimeVAE}
+GENERATORS: dict[str, type[Generator]] = {"timevae": TimeVAE, "hypersindy": HyperSINDy}
+
+
+def generator_class(name: str) -> type[Generator]:
+    """The generator class registered as ``name``; an unknown name is an error."""
+    if not isinstance(name, str) or name not in GENERATORS:
+        raise ValueError(f"generator must be one of {sorted(GENERATORS)}; got {name!r}.")
+    return GENERATORS[name]
 
 
 def build_generator(name: str, n_inputs: int, n_outputs: int, options) -> Generator:
     """Instantiate the generator ``name`` with validated options (the caller seeds torch)."""
-    if name not in GENERATORS:
-        raise ValueError(f"generator must be one of {sorted(GENERATORS)}; got {name!r}.")
-    cls = GENERATORS[name]
+    cls = generator_class(name)
     return cls(n_inputs, n_outputs, make_options(cls.Options, options, name))
 
 
-__all__ = ["Generator", "TimeVAE", "TimeVAEOptions", "GENERATORS", "build_generator"]
+__all__ = ["Generator", "TimeVAE", "TimeVAEOptions", "HyperSINDy", "HyperSINDyOptions",
+           "GENERATORS", "generator_class", "build_generator"]

@@ -1,0 +1,386 @@
+"""Window-by-window training of sequential generators (dynamic HyperSINDy).
+
+The series is read in time order in windows; the hypernetwork's state is carried from
+one window to the next and detached (truncated backpropagation through time), so
+memory is set by the window, not by the series length. The loss is the one of
+:mod:`latentsindy._training` (derivative misfit, KL in ELBO units, sparsity, normalised
+total variation) with the paper's HyperSINDy choices: relaxed-L0 (hard-concrete)
+gates, a KL weight warmed up from ``kl_start``, AdamW with amsgrad and an exponential
+learning-rate decay.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm.auto import tqdm
+
+from ._training import least_squares_constants
+from .generators.hypersindy import interpolate_chunks
+
+_EPS = torch.finfo(torch.float32).eps
+MODES = ("alternate", "joint", "online")
+# hard-concrete gate constants (Louizos et al. 2018)
+_BETA, _GAMMA, _ZETA = 2.0 / 3.0, -0.1, 1.1
+_LOG_ALPHA0 = 5.0  # gates start open: P(gate < 1) = 3%
+
+
+@dataclass(frozen=True)
+class SequentialTrainingOptions:
+    """How a sequential generator (``generator="hypersindy"``) is trained.
+
+    Weights act on normalised quantities, as in :class:`TrainingOptions`.
+
+    Attributes
+    ----------
+    mode : {"alternate", "joint", "online"}
+        ``"alternate"`` (default; the paper's mode for continuously varying
+        coefficients): the hypernetwork and the main module (encoder, decoder, basis
+        tensors, constants, gates) take turns, one epoch each. ``"joint"``: both at
+        every step. ``"online"``: the support phase as in ``"alternate"``, then one
+        pass in time order in which the main module adapts to each window for
+        ``online_steps`` steps and the coefficients are read off as it goes (the
+        paper's mode for switching systems; the hypernetwork is not used).
+    window : int
+        Time steps per optimiser step (truncated backpropagation length).
+    support_steps, refit_steps : int
+        Optimiser steps of phase one (support) and phase two (refit), each rounded
+        up to whole passes over the series (epochs), at least ``min_epochs``.
+    min_epochs : int
+        Fewest passes over the series per phase (long series need few).
+    learning_rate, weight_decay, lr_decay : float
+        AdamW (amsgrad) step size and weight decay; the step size is multiplied by
+        ``lr_decay`` after every optimiser step.
+    threshold : float
+        Final pruning threshold on a term's mean |coefficient| over time (a share of
+        its equation's RMS derivative), reached by a linear rise after the warm-up.
+    warmup, ramp : float
+        Fractions of phase one without sparsity, and at which the threshold is full.
+    sparsity : float
+        Weight of the relaxed-L0 penalty (expected number of active terms per
+        equation), in phase one after the warm-up.
+    kl_start, kl_weight : float
+        The KL weight rises geometrically from ``kl_start`` to ``kl_weight`` over
+        phase one (the paper's KL warm-up) and stays there.
+    smoothness, refit_smoothness : float
+        Weights of the normalised total variation, as in :class:`TrainingOptions`.
+    grad_clip : float
+        Maximum gradient norm.
+    online_steps : int
+        Optimiser steps per window in ``mode="online"``.
+    """
+
+    mode: str = "alternate"
+    window: int = 1000
+    support_steps: int = 800
+    refit_steps: int = 700
+    min_epochs: int = 2
+    learning_rate: float = 3e-3
+    weight_decay: float = 1e-5
+    lr_decay: float = 0.999
+    threshold: float = 0.05
+    warmup: float = 0.25
+    ramp: float = 0.75
+    sparsity: float = 1e-3
+    l1: float = 0.1
+    kl_start: float = 0.01
+    kl_weight: float = 1.0
+    smoothness: float = 0.3
+    refit_smoothness: float = 2.0
+    grad_clip: float = 1.0
+    online_steps: int = 20
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f"SequentialTrainingOptions.mode must be one of {MODES}; "
+                             f"got {self.mode!r}.")
+        for f in fields(self):
+            if f.name == "mode":
+                continue
+            value = getattr(self, f.name)
+            if f.type == "int":
+                if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
+                    raise ValueError(f"SequentialTrainingOptions.{f.name} must be an int >= 0; "
+                                     f"got {value!r}")
+            elif (isinstance(value, bool) or not isinstance(value, int | float)
+                  or not math.isfinite(value) or value < 0):
+                raise ValueError(f"SequentialTrainingOptions.{f.name} must be a number >= 0; "
+                                 f"got {value!r}")
+        for name in ("window", "min_epochs", "online_steps"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"SequentialTrainingOptions.{name} must be >= 1; "
+                                 f"got {getattr(self, name)}")
+        if not 0 <= self.warmup < self.ramp <= 1:
+            raise ValueError("SequentialTrainingOptions needs 0 <= warmup < ramp <= 1; got "
+                             f"warmup={self.warmup}, ramp={self.ramp}")
+        if self.learning_rate <= 0 or not 0 < self.lr_decay <= 1:
+            raise ValueError("SequentialTrainingOptions needs learning_rate > 0 and "
+                             f"0 < lr_decay <= 1; got {self.learning_rate}, {self.lr_decay}")
+        if not 0 < self.kl_start <= max(self.kl_weight, self.kl_start):
+            raise ValueError(f"SequentialTrainingOptions.kl_start must be > 0; "
+                             f"got {self.kl_start}")
+
+
+class SequentialCoefficientModel(nn.Module):
+    """Xi = support * gate * (constants + time_varying * generator), chunk by chunk."""
+
+    def __init__(self, generator, constants, support, time_varying):
+        super().__init__()
+        self.generator = generator
+        self.constants = nn.Parameter(constants.clone())
+        self.log_alpha = nn.Parameter(torch.full_like(constants, _LOG_ALPHA0))
+        self.register_buffer("support", support.clone())
+        self.register_buffer("time_varying", time_varying.clone())
+        self.track_mean = None  # online mode: coefficients read off while training
+        self.track_std = None
+        self.last_size = None
+
+    def gates(self, stochastic: bool) -> torch.Tensor:
+        if stochastic:
+            u = torch.rand_like(self.log_alpha).clamp(1e-6, 1 - 1e-6)
+            s = torch.sigmoid((torch.log(u) - torch.log1p(-u) + self.log_alpha) / _BETA)
+        else:
+            s = torch.sigmoid(self.log_alpha)
+        return (s * (_ZETA - _GAMMA) + _GAMMA).clamp(0.0, 1.0)
+
+    def expected_l0(self) -> torch.Tensor:
+        """Probability that each gate is non-zero, (n_states, n_features)."""
+        return torch.sigmoid(self.log_alpha - _BETA * math.log(-_GAMMA / _ZETA))
+
+    def window(self, inputs, n_samples, state, stochastic=False):
+        """Chunk coefficients (S, C, n, F) of one window, its KL and the new state."""
+        series, kl, state = self.generator.window(inputs, n_samples, state)
+        n_states, n_features = self.constants.shape
+        series = series.reshape(series.shape[0], series.shape[1], n_states, n_features)
+        ungated = self.support * (self.constants + self.time_varying * series)
+        self.last_size = ungated.abs().mean(dim=(0, 1)) * self.gates(False).detach()
+        return ungated * self.gates(stochastic), kl, state
+
+    def chunk_series(self, inputs, n_samples, window):
+        """Chunk coefficients (S, C, n, F) of the whole series, read window by window."""
+        if self.track_mean is not None:
+            mean = self.track_mean[None]
+            if n_samples == 0:
+                return mean, torch.zeros((), device=mean.device)
+            eps = torch.randn((n_samples, *self.track_mean.shape), device=mean.device)
+            return mean + eps * self.track_std[None], torch.zeros((), device=mean.device)
+        state, parts, kl = None, [], 0.0
+        for start in range(0, inputs.shape[-1], window):
+            xi, kl_w, state = self.window(inputs[..., start:start + window], n_samples, state)
+            parts.append(xi)
+            kl = kl + kl_w
+        return torch.cat(parts, dim=1), kl
+
+    def forward(self, inputs, n_samples: int, window: int = 4096):
+        """Per-step coefficients (S, T, n, F) and KL, as :class:`CoefficientModel`."""
+        chunk = self.generator.chunk
+        window = max(chunk, window - window % chunk)
+        xi, kl = self.chunk_series(inputs, n_samples, window)
+        shape = xi.shape
+        per_step = interpolate_chunks(xi.flatten(2), inputs.shape[-1], chunk)
+        return per_step.reshape(shape[0], -1, *shape[2:]), kl
+
+
+def windowed_constants(theta, xdot, support, window):
+    """Initial constants: the average of least-squares fits in each window.
+
+    A single constant fit of a time-varying system borrows spurious terms to mimic the
+    variation (on Lorenz with a drifting sigma it uses x z and y z); window by window
+    the variation is small, those terms are not needed, and their average is near zero.
+    Accumulates one window at a time, so memory does not depend on the series length.
+    """
+    n_states, n_features = support.shape
+    fits, weights = [], []
+    for start in range(0, theta.shape[1], window):
+        a = theta[:, start:start + window].reshape(-1, n_features)
+        b = xdot[:, start:start + window].reshape(-1, n_states)
+        if a.shape[0] < 2 * n_features:  # too short for a fit of its own
+            continue
+        fits.append(least_squares_constants(a[None], b[None], support))
+        weights.append(float(a.shape[0]))
+    if not fits:
+        return least_squares_constants(theta, xdot, support)
+    w = torch.tensor(weights, dtype=theta.dtype, device=theta.device)
+    return (torch.stack(fits) * w[:, None, None]).sum(0) / w.sum()
+
+
+def _window_loss(model, theta, xdot, weights, inputs, noise_var, state, previous,
+                 stochastic):
+    """Loss terms of one window; returns (terms, chunk coefficients, new state)."""
+    chunk = model.generator.chunk
+    xi_c, kl, state = model.window(inputs, 1, state, stochastic=stochastic)
+    n_steps = theta.shape[1]
+    xi = interpolate_chunks(xi_c.flatten(2), n_steps, chunk).reshape(
+        xi_c.shape[0], n_steps, *xi_c.shape[2:])
+    pred = torch.einsum("btf,stnf->sbtn", theta, xi)
+    mse = torch.mean(weights[None] * (pred - xdot[None]) ** 2)
+    kl = 2.0 * noise_var * kl / xdot.numel()
+    active = model.support.to(xi.dtype)
+    n_active = active.sum().clamp_min(1.0)
+    track = xi_c if previous is None else torch.cat([previous, xi_c], dim=1)
+    tv = ((track[:, 1:] - track[:, :-1]).abs().sum(dim=(0, 1)) / (n_steps * xi_c.shape[0])
+          * active).sum() / n_active
+    size = model.last_size  # mean |Xi| in this window, with the gates' expected values
+    tv = tv / ((size * active).sum() / n_active + _EPS).detach()
+    return {"mse": mse, "kl": kl, "tv": tv, "size": size}, xi_c, state
+
+
+def _epochs(steps, per_epoch, minimum):
+    return max(minimum, math.ceil(steps / per_epoch)) if steps else 0
+
+
+def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
+                     options: SequentialTrainingOptions, verbose: bool):
+    """Two-phase windowed training in place; returns the loss history (one dict per step)."""
+    chunk = model.generator.options.chunk
+    n_times = theta.shape[1]
+    window = max(chunk, options.window - options.window % chunk)
+    starts = list(range(0, n_times, window))
+    hyper = [p for name, p in model.named_parameters()
+             if name.startswith(("generator.lstm", "generator.mlp", "generator.to_alpha"))]
+    hyper_ids = {id(p) for p in hyper}
+    main = [p for p in model.parameters() if id(p) not in hyper_ids]
+    make = lambda ps: torch.optim.AdamW(ps, lr=options.learning_rate,  # noqa: E731
+                                        weight_decay=options.weight_decay, amsgrad=True)
+    optimisers = {"main": make(main), "hyper": make(hyper)}
+    epochs = (_epochs(options.support_steps, len(starts), options.min_epochs),
+              _epochs(options.refit_steps, len(starts), options.min_epochs))
+    total_steps = sum(epochs) * len(starts)
+    free = free_rows.to(theta.dtype)[:, None]
+    bayes = min(1.0, max(0.01, noise_var * n_times * float(model.support.sum())
+                         / theta.new_tensor(xdot.shape[-1]).item()))
+    history, step = [], 0
+    bar = tqdm(total=total_steps, disable=not verbose, desc="dynamic HyperSINDy", leave=False)
+    for phase, n_epochs in ((1, epochs[0]), (2, epochs[1])):
+        if phase == 2:
+            model.log_alpha.requires_grad_(False)
+            if options.mode == "online":
+                history += _online_pass(model, theta, xdot, weights, inputs, noise_var, starts,
+                                        window, options, bayes, bar)
+                break
+        for epoch in range(n_epochs):
+            progress = epoch / max(n_epochs, 1)
+            warming = phase == 1 and progress < options.warmup
+            # constants first (sparse, like SINDy), then time variation fades in: the
+            # generator explains what constant terms cannot, instead of re-explaining all
+            # coarse first: during the warm-up one latent per window (coefficients
+            # constant within a window, like windowed SINDy), so the support is found from
+            # slow variation before fine latents can follow the state itself
+            model.generator.chunk = window if warming else chunk
+            if phase == 1:
+                rise = min(1.0, progress / options.ramp)
+                kl_w = options.kl_start * (options.kl_weight / options.kl_start) ** rise
+            else:
+                kl_w = options.kl_weight
+            if options.mode == "alternate" and n_epochs > 1:
+                active_groups = ("hyper",) if (epoch % 2 == 0) else ("main",)
+            else:
+                active_groups = ("main", "hyper")
+            state, previous = None, None
+            size_sum, n_chunks = torch.zeros_like(model.constants), 0
+            for start in starts:
+                sl = slice(start, start + window)
+                terms, xi_c, state = _window_loss(
+                    model, theta[:, sl], xdot[:, sl], weights[:, sl], inputs[..., sl],
+                    noise_var, state, previous, stochastic=phase == 1)
+                state = _detach(state)
+                previous = xi_c[:, -1:].detach()
+                size_sum += terms["size"].detach() * xi_c.shape[1]
+                n_chunks += xi_c.shape[1]
+                if phase == 1:
+                    l0 = (model.expected_l0() * model.support * free).sum() / theta.new_tensor(
+                        float(xdot.shape[-1]))
+                    th = options.threshold
+                    l1 = (th * torch.log1p(terms["size"] / th) * free).sum() / xdot.shape[-1]
+                    reg = options.sparsity * l0 + options.l1 * l1 \
+                        + options.smoothness * terms["tv"]
+                else:
+                    l0 = torch.zeros(())
+                    reg = options.refit_smoothness * bayes * terms["tv"]
+                loss = terms["mse"] + kl_w * terms["kl"] + reg
+                for name in active_groups:
+                    optimisers[name].zero_grad(set_to_none=True)
+                loss.backward()
+                params = [p for name in active_groups for p in optimisers[name].param_groups[0]
+                          ["params"]]
+                nn.utils.clip_grad_norm_(params, options.grad_clip)
+                for name in active_groups:
+                    optimisers[name].step()
+                for opt in optimisers.values():
+                    opt.param_groups[0]["lr"] *= options.lr_decay
+                for name in ("main", "hyper"):
+                    if name not in active_groups:
+                        optimisers[name].zero_grad(set_to_none=True)
+                history.append({"phase": phase, "epoch": epoch, "loss": float(loss.detach()),
+                                "mse": float(terms["mse"].detach()),
+                                "kl": float(terms["kl"].detach()),
+                                "tv": float(terms["tv"].detach()), "l0": float(l0.detach()),
+                                "kl_weight": kl_w})
+                step += 1
+                bar.update(1)
+            if phase == 1 and not warming:
+                level = options.threshold * min(1.0, (progress + 1 / n_epochs - options.warmup)
+                                                / (options.ramp - options.warmup))
+                _prune(model, size_sum / n_chunks, level, free_rows)
+            if verbose:
+                bar.set_postfix(phase=phase, mse=f"{history[-1]['mse']:.2e}",
+                                terms=int(model.support.sum()))
+    bar.close()
+    model.generator.chunk = chunk
+    return history
+
+
+@torch.no_grad()
+def _prune(model, mean_size, level, free_rows):
+    """Drop free terms whose gate is closed, or whose mean |Xi| over the epoch and whose
+    constant part are both below ``level`` (the generator's variation can offset a small
+    constant on collinear features; the constant still shows the term is needed)."""
+    gate = model.gates(stochastic=False)
+    small = (mean_size < level) & (model.constants.abs() * gate < level)
+    drop = (small | (gate <= 0)) & model.support & free_rows[:, None]
+    model.support &= ~drop
+
+
+def _detach(state):
+    if state is None:
+        return None
+    return tuple(s.detach() for s in state)
+
+
+def _online_pass(model, theta, xdot, weights, inputs, noise_var, starts, window, options,
+                 bayes, bar):
+    """Read the series once in time order; the main module adapts to every window and
+    the coefficients are recorded as it goes (chunk means and spreads)."""
+    main = [p for name, p in model.named_parameters()
+            if p.requires_grad and not name.startswith(("generator.lstm", "generator.mlp",
+                                                         "generator.to_alpha"))]
+    opt = torch.optim.AdamW(main, lr=options.learning_rate, weight_decay=options.weight_decay,
+                            amsgrad=True)
+    means, stds, history, previous = [], [], [], None
+    for start in starts:
+        sl = slice(start, start + window)
+        for _ in range(options.online_steps):
+            terms, xi_c, _ = _window_loss(model, theta[:, sl], xdot[:, sl], weights[:, sl],
+                                          inputs[..., sl], noise_var, None, previous, False)
+            loss = terms["mse"] + options.kl_weight * terms["kl"] \
+                + options.refit_smoothness * bayes * terms["tv"]
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            nn.utils.clip_grad_norm_(main, options.grad_clip)
+            opt.step()
+            history.append({"phase": 2, "loss": float(loss.detach()),
+                            "mse": float(terms["mse"].detach())})
+        bar.update(1)
+        with torch.no_grad():
+            mean, _, _ = model.window(inputs[..., sl], 0, None)
+            draws, _, _ = model.window(inputs[..., sl], 16, None)
+        means.append(mean[0])
+        stds.append(draws.std(dim=0))
+        previous = mean[:, -1:]
+    model.track_mean = torch.cat(means)
+    model.track_std = torch.cat(stds)
+    return history

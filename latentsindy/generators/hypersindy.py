@@ -1,0 +1,205 @@
+"""Dynamic HyperSINDy: a sequential hypernetwork generator for long series.
+
+The architecture of the paper's supplementary section 1.2.2, read in time order:
+
+* **Encoder** (VAE, four ELU layers of width 64): reads the normalised states and
+  derivatives (x, xdot) at every time step; features are pooled over a short chunk of
+  time steps (and over trajectories that share their dynamics) into a Gaussian
+  posterior over a latent ``z_c`` (dimension 25) for each chunk ``c``.
+* **Hypernetwork** (an LSTM of two layers with 30 cells, or an MLP): reads the latents
+  in time order and emits mixing weights ``alpha(c)``.
+* **Decoder** (four ELU layers of width 256) maps ``z_c`` to SINDy coefficients with
+  weights ``W(c) = W_base + sum_i alpha_i(c) D_i`` mixed from ``n_bases`` learned
+  basis tensors, so the coefficient distribution drifts as the dynamics change.
+
+Coefficients are produced per chunk and interpolated linearly to every time step.
+Nothing in the network depends on the series length: the LSTM state is carried from
+one window to the next, so training can run window by window (truncated
+backpropagation through time) with memory set by the window, not by the series.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ._base import Generator, gaussian_kl
+
+HYPERNETWORKS = ("lstm", "mlp")
+
+
+@dataclass(frozen=True)
+class HyperSINDyOptions:
+    """Architecture of :class:`HyperSINDy` (defaults: the paper's table).
+
+    Attributes
+    ----------
+    latent_dim : int
+        Dimension of each chunk's latent z (also the hypernetwork's input).
+    encoder_hidden, encoder_layers : int
+        Width and depth of the per-time-step encoder (ELU).
+    decoder_hidden, decoder_layers : int
+        Width and number of hidden layers of the decoder (ELU).
+    n_bases : int
+        Number M of basis tensors D_i mixed into every decoder weight.
+    hypernetwork : {"lstm", "mlp"}
+        Second-level network emitting alpha(t): an LSTM (memory across time, the
+        default) or an MLP of the current latent only.
+    lstm_hidden, lstm_layers : int
+        Cells per layer and number of layers of the LSTM (or width of the MLP).
+    chunk : int
+        Time steps that share one latent (the paper's "batch size (time steps)",
+        1-10). Coefficients are interpolated linearly between chunk centres.
+    """
+
+    latent_dim: int = 25
+    encoder_hidden: int = 64
+    encoder_layers: int = 4
+    decoder_hidden: int = 256
+    decoder_layers: int = 4
+    n_bases: int = 10
+    hypernetwork: str = "lstm"
+    lstm_hidden: int = 30
+    lstm_layers: int = 2
+    chunk: int = 10
+
+    def __post_init__(self):
+        for name in ("latent_dim", "encoder_hidden", "encoder_layers", "decoder_hidden",
+                     "decoder_layers", "n_bases", "lstm_hidden", "lstm_layers", "chunk"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"HyperSINDyOptions.{name} must be a positive int; "
+                                 f"got {value!r}.")
+        if self.hypernetwork not in HYPERNETWORKS:
+            raise ValueError(f"HyperSINDyOptions.hypernetwork must be one of {HYPERNETWORKS}; "
+                             f"got {self.hypernetwork!r}.")
+
+
+class MixedLinear(nn.Module):
+    """Linear layer whose weight is ``W_base + sum_i alpha_i D_i`` (one alpha per row)."""
+
+    def __init__(self, n_in: int, n_out: int, n_bases: int):
+        super().__init__()
+        self.base = nn.Linear(n_in, n_out)
+        self.bases = nn.Parameter(torch.randn(n_bases, n_in, n_out) * (0.1 / n_in**0.5))
+        self.bias_bases = nn.Parameter(torch.zeros(n_bases, n_out))
+
+    def forward(self, h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        # sum_i alpha_i (h D_i) as one matmul of (alpha outer h) with the stacked bases
+        mixed = (alpha[..., :, None] * h[..., None, :]).flatten(-2)
+        return (self.base(h) + mixed @ self.bases.flatten(0, 1) + alpha @ self.bias_bases)
+
+
+class HyperSINDy(Generator):
+    """Per-chunk VAE encoder -> hypernetwork alpha(t) -> weight-mixing decoder.
+
+    Examples
+    --------
+    >>> import torch
+    >>> g = HyperSINDy(n_inputs=4, n_outputs=6, options=HyperSINDyOptions())
+    >>> series, kl = g.sample(torch.randn(1, 4, 1000), n_samples=3)
+    >>> tuple(series.shape)
+    (3, 1000, 6)
+    """
+
+    Options = HyperSINDyOptions
+    sequential = True
+
+    def __init__(self, n_inputs: int, n_outputs: int, options: HyperSINDyOptions):
+        super().__init__()
+        o = self.options = options
+        self.chunk = o.chunk  # time steps per latent; training may coarsen it temporarily
+        layers: list[nn.Module] = []
+        width = n_inputs
+        for _ in range(o.encoder_layers - 1):
+            layers += [nn.Linear(width, o.encoder_hidden), nn.ELU()]
+            width = o.encoder_hidden
+        self.encoder = nn.Sequential(*layers)
+        self.to_latent = nn.Linear(width, 2 * o.latent_dim)
+        if o.hypernetwork == "lstm":
+            self.lstm = nn.LSTM(o.latent_dim, o.lstm_hidden, o.lstm_layers, batch_first=True)
+            self.mlp = None
+        else:
+            self.lstm = None
+            self.mlp = nn.Sequential(nn.Linear(o.latent_dim, o.lstm_hidden), nn.ELU())
+        self.to_alpha = nn.Linear(o.lstm_hidden, o.n_bases)
+        dims = [o.latent_dim] + [o.decoder_hidden] * o.decoder_layers + [n_outputs]
+        self.decoder = nn.ModuleList(MixedLinear(a, b, o.n_bases)
+                                     for a, b in zip(dims[:-1], dims[1:], strict=True))
+        # Start from "no time variation": the estimator's constants carry the initial fit.
+        last = self.decoder[-1]
+        nn.init.zeros_(last.base.weight)
+        nn.init.zeros_(last.base.bias)
+        nn.init.zeros_(last.bases)
+
+    # ---------------------------------------------------------------- pieces
+    def encode(self, inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, C_in, W) -> posterior mean and log-variance per chunk, (n_chunks, latent)."""
+        h = self.encoder(inputs.transpose(1, 2)).mean(dim=0)  # (W, H), pooled trajectories
+        n_steps, chunk = h.shape[0], self.chunk
+        n_chunks = -(-n_steps // chunk)
+        index = torch.arange(n_steps, device=h.device) // chunk
+        sums = torch.zeros(n_chunks, h.shape[1], dtype=h.dtype, device=h.device)
+        sums.index_add_(0, index, h)
+        counts = torch.bincount(index, minlength=n_chunks).to(h.dtype)[:, None]
+        mu, logvar = self.to_latent(sums / counts).chunk(2, dim=-1)
+        return mu, logvar.clamp(-12.0, 6.0)
+
+    def mixing(self, z: torch.Tensor, state):
+        """Latents (S, C, latent) -> alpha (S, C, n_bases) and the carried state."""
+        if self.lstm is None:
+            return self.to_alpha(self.mlp(z)), None
+        out, state = self.lstm(z, state)
+        return self.to_alpha(out), state
+
+    def decode(self, z: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        h = z
+        for k, layer in enumerate(self.decoder):
+            h = layer(h, alpha)
+            if k < len(self.decoder) - 1:
+                h = F.elu(h)
+        return h
+
+    # -------------------------------------------------------------- interface
+    def window(self, inputs: torch.Tensor, n_samples: int, state=None):
+        """One window in time order: chunk coefficients (S, C, n_out), KL, new state.
+
+        ``state`` is the hypernetwork state at the window's start (``None``: zeros);
+        the returned state continues into the next window.
+        """
+        mu, logvar = self.encode(inputs)
+        if n_samples == 0:
+            z = mu[None]
+        else:
+            eps = torch.randn((n_samples, *mu.shape), dtype=mu.dtype, device=mu.device)
+            z = mu[None] + eps * torch.exp(0.5 * logvar)[None]
+        alpha, state = self.mixing(z, state)
+        return self.decode(z, alpha), gaussian_kl(mu, logvar), state
+
+    def sample(self, inputs: torch.Tensor, n_samples: int, window: int = 4096):
+        """Whole series, read window by window: (S, T, n_out) and the total KL."""
+        window = max(self.options.chunk, window - window % self.options.chunk)
+        state, parts, kl = None, [], 0.0
+        for start in range(0, inputs.shape[-1], window):
+            series, kl_w, state = self.window(inputs[..., start:start + window], n_samples, state)
+            parts.append(series)
+            kl = kl + kl_w
+        return interpolate_chunks(torch.cat(parts, dim=1), inputs.shape[-1], self.chunk), kl
+
+
+def interpolate_chunks(values: torch.Tensor, n_steps: int, chunk: int) -> torch.Tensor:
+    """Chunk values (S, C, K) -> per-step values (S, n_steps, K), linear between centres."""
+    n_chunks = values.shape[1]
+    if n_chunks == 1:
+        return values.expand(-1, n_steps, -1)
+    steps = torch.arange(n_steps, device=values.device, dtype=values.dtype)
+    starts = torch.arange(n_chunks, device=values.device, dtype=values.dtype) * chunk
+    ends = torch.clamp(starts + chunk, max=n_steps)
+    centres = (starts + ends - 1) / 2
+    pos = torch.searchsorted(centres, steps).clamp(1, n_chunks - 1)
+    left, right = centres[pos - 1], centres[pos]
+    frac = ((steps - left) / (right - left)).clamp(0.0, 1.0)[None, :, None]
+    return values[:, pos - 1] * (1 - frac) + values[:, pos] * frac

@@ -1,0 +1,132 @@
+"""Dynamic HyperSINDy: the sequential generator, its windowed training and its bars."""
+
+import numpy as np
+import pysindy as ps
+import pytest
+import torch
+from conftest import r2
+
+from latentsindy import DynamicSINDy, SequentialTrainingOptions, TrainingOptions, systems
+from latentsindy.generators import HyperSINDy, HyperSINDyOptions
+from latentsindy.generators.hypersindy import interpolate_chunks
+
+
+def test_shapes_and_parameters_independent_of_length():
+    gen = HyperSINDy(4, 6, HyperSINDyOptions())
+    n_params = sum(p.numel() for p in gen.parameters())
+    for n_times in (37, 1000, 5003):
+        series, kl = gen.sample(torch.randn(2, 4, n_times), n_samples=3)
+        assert series.shape == (3, n_times, 6)
+        assert kl.ndim == 0 and float(kl.detach()) >= 0
+    assert n_params == sum(p.numel() for p in HyperSINDy(4, 6, HyperSINDyOptions()).parameters())
+
+
+def test_reading_in_windows_carries_the_hypernetwork_state():
+    """The whole series read window by window equals one long read (the LSTM state is
+    carried), so truncated backpropagation changes the gradients, not the model."""
+    torch.manual_seed(0)
+    gen = _trained_like(HyperSINDy(4, 6, HyperSINDyOptions()))
+    inputs = torch.randn(1, 4, 2000)
+    with torch.no_grad():
+        whole, _ = gen.sample(inputs, 0, window=2000)
+        pieces, _ = gen.sample(inputs, 0, window=300)
+    assert torch.allclose(whole, pieces, atol=1e-5)
+
+
+def _trained_like(gen):
+    """Non-zero output layer and basis tensors, as after training."""
+    torch.nn.init.normal_(gen.decoder[-1].base.weight)
+    torch.nn.init.normal_(gen.to_alpha.weight)
+    for layer in gen.decoder:
+        torch.nn.init.normal_(layer.bases, std=0.3 / layer.bases.shape[1] ** 0.5)
+    return gen
+
+
+def test_lstm_makes_coefficients_depend_on_the_past():
+    torch.manual_seed(0)
+    gen = _trained_like(HyperSINDy(4, 6, HyperSINDyOptions()))
+    a = torch.randn(1, 4, 400)
+    b = a.clone()
+    b[..., :200] = torch.randn(1, 4, 200)  # same recent data, different past
+    with torch.no_grad():
+        out_a, _ = gen.sample(a, 0)
+        out_b, _ = gen.sample(b, 0)
+    assert (out_a[0, 210:] - out_b[0, 210:]).abs().max() > 1e-3
+    mlp = _trained_like(HyperSINDy(4, 6, HyperSINDyOptions(hypernetwork="mlp")))
+    with torch.no_grad():
+        out_a, _ = mlp.sample(a, 0)
+        out_b, _ = mlp.sample(b, 0)
+    assert torch.allclose(out_a[0, 210:], out_b[0, 210:])  # an MLP has no memory
+
+
+def test_chunk_interpolation_is_exact_for_linear_series():
+    n_times, chunk = 95, 10
+    steps = torch.arange(n_times, dtype=torch.float64)
+    starts = torch.arange(0, n_times, chunk, dtype=torch.float64)
+    centres = (starts + torch.clamp(starts + chunk, max=n_times) - 1) / 2
+    values = (2.0 * centres - 3.0)[None, :, None]
+    out = interpolate_chunks(values, n_times, chunk)[0, :, 0]
+    inside = (steps >= centres[0]) & (steps <= centres[-1])
+    assert torch.allclose(out[inside], 2.0 * steps[inside] - 3.0)
+
+
+def test_options_are_validated():
+    data = systems.harmonic_oscillator(n_times=200)
+    with pytest.raises(TypeError, match="Unknown option"):
+        DynamicSINDy(generator="hypersindy", generator_options={"latnet_dim": 3},
+                     verbose=False).fit(data.x, data.t)
+    with pytest.raises(ValueError, match="hypernetwork must be one of"):
+        HyperSINDyOptions(hypernetwork="gru")
+    with pytest.raises(ValueError, match="mode must be one of"):
+        SequentialTrainingOptions(mode="offline")
+    with pytest.raises(ValueError, match="window must be >= 1"):
+        SequentialTrainingOptions(window=0)
+    with pytest.raises(TypeError, match="must be a SequentialTrainingOptions"):
+        DynamicSINDy(generator="hypersindy", training=TrainingOptions(),
+                     verbose=False).fit(data.x, data.t)
+    with pytest.raises(TypeError, match="Unknown training option.*online_steps"):
+        DynamicSINDy(generator="timevae", training={"online_steps": 3},
+                     verbose=False).fit(data.x, data.t)
+
+
+def test_alternate_mode_trains_one_part_at_a_time():
+    data = systems.harmonic_oscillator(n_times=400)
+    opts = {"support_steps": 1, "refit_steps": 0, "min_epochs": 2, "window": 200}
+    model = DynamicSINDy(generator="hypersindy", training=opts, verbose=False, seed=3)
+    model.fit(data.x, data.t)
+    fresh = DynamicSINDy(generator="hypersindy", training={**opts, "support_steps": 0},
+                         verbose=False, seed=3)
+    # same seed, no steps: the initial state
+    fresh.fit(data.x, data.t)
+    gen, gen0 = model.model_.generator, fresh.model_.generator
+    # two epochs: the hypernetwork first (main module fixed), then the main module
+    assert not torch.equal(gen.lstm.weight_ih_l0, gen0.lstm.weight_ih_l0)
+    assert not torch.equal(gen.encoder[0].weight, gen0.encoder[0].weight)
+    assert len(model.history_) == 4  # 2 epochs x 2 windows
+
+
+def test_online_mode_records_the_track_window_by_window():
+    data = systems.harmonic_oscillator(A=systems.Switch(-1.0, -3.0, at=5.0), n_times=600)
+    opts = {"mode": "online", "support_steps": 20, "refit_steps": 1, "window": 200,
+            "online_steps": 3}
+    model = DynamicSINDy(ps.PolynomialLibrary(degree=1, include_bias=False),
+                         generator="hypersindy", training=opts, verbose=False)
+    coefs = model.fit(data.x, data.t, feature_names=["x", "y"]).coefficients(n_samples=4)
+    assert coefs.mean.shape == (600, 2, 2)
+    assert model.model_.track_mean.shape[0] == 60  # one record per chunk of 10 steps
+    assert sum(h["phase"] == 2 for h in model.history_) == 3 * 3  # 3 windows x 3 steps
+
+
+def test_oscillator_sigmoid_A_at_one_percent_noise():
+    """Issue 4 bar: R^2 of A(t) >= 0.95 with generator="hypersindy" (default settings).
+
+    Measured: R^2 0.9988, B within 0.4%. The support is not exact yet (it keeps small
+    spurious x-equation terms, see README Known limitations), so it is not asserted.
+    """
+    data = systems.harmonic_oscillator(A=systems.Sigmoid(-1.0, -4.0, at=12.0, sharpness=1.0),
+                                       B=1.0, t_end=25.0, n_times=1000, noise=0.01, seed=1)
+    model = DynamicSINDy(ps.PolynomialLibrary(degree=2), generator="hypersindy", verbose=False)
+    coefs = model.fit(data.x, data.t, feature_names=["x", "y"]).coefficients(n_samples=16)
+    assert ("x", "y") in coefs.active_terms() and ("y", "x") in coefs.active_terms()
+    assert r2(coefs.term("x", "y"), data.parameters["A"]) >= 0.95
+    assert np.max(np.abs(coefs.term("y", "x") - 1.0)) < 0.05
