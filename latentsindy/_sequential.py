@@ -59,10 +59,14 @@ class SequentialTrainingOptions:
         Final pruning threshold on a term's mean |coefficient| over time (a share of
         its equation's RMS derivative), reached by a linear rise after the warm-up.
     warmup, ramp : float
-        Fractions of phase one without sparsity, and at which the threshold is full.
+        Fractions of phase one without pruning (with one latent per window, so the
+        coefficients are constant within a window), and at which the threshold is full.
     sparsity : float
         Weight of the relaxed-L0 penalty (expected number of active terms per
-        equation), in phase one after the warm-up.
+        equation) in phase one.
+    l1 : float
+        Weight of the reweighted-L1 (log) penalty on each term's mean |Xi|, per
+        equation, in phase one (as ``TrainingOptions.sparsity``).
     kl_start, kl_weight : float
         The KL weight rises geometrically from ``kl_start`` to ``kl_weight`` over
         phase one (the paper's KL warm-up) and stays there.
