@@ -160,6 +160,8 @@ class DynamicSINDy:
         with _seeded(self.seed, dev):  # repeatable, and the caller's RNG state is untouched
             gen = build_generator(self.generator, inputs.shape[1], support.size,
                                   self.generator_options)
+            if sequential:
+                gen.allocate(theta.shape[1])
             support_t = torch.as_tensor(support, device=dev)
             if sequential:
                 constants = windowed_constants(theta_n, xdot_n, support_t, options.window)

@@ -27,6 +27,9 @@ MODES = ("alternate", "joint", "online")
 # hard-concrete gate constants (Louizos et al. 2018)
 _BETA, _GAMMA, _ZETA = 2.0 / 3.0, -0.1, 1.1
 _LOG_ALPHA0 = 5.0  # gates start open: P(gate < 1) = 3%
+_LOG_ALPHA0_VAR = 5.0  # variation gates start open too
+_GATE_LR = 10.0  # gates learn ten times faster than the networks
+_CODE_LR = 30.0  # per-chunk offsets: one update per epoch each, so large steps
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,11 @@ class SequentialTrainingOptions:
     l1 : float
         Weight of the reweighted-L1 (log) penalty on each term's mean |Xi|, per
         equation, in phase one (as ``TrainingOptions.sparsity``).
+    variation_sparsity : float
+        Cost of letting a term vary in time (relaxed L0 on its variation gate, per
+        equation), plus twice the derivative noise variance: a term varies only where
+        that explains more than noise. Terms whose variation gate closes in phase
+        one are refitted as constants.
     kl_start, kl_weight : float
         The KL weight rises geometrically from ``kl_start`` to ``kl_weight`` over
         phase one (the paper's KL warm-up) and stays there.
@@ -91,6 +99,7 @@ class SequentialTrainingOptions:
     ramp: float = 0.75
     sparsity: float = 1e-3
     l1: float = 0.1
+    variation_sparsity: float = 1e-3
     kl_start: float = 0.01
     kl_weight: float = 1.0
     smoothness: float = 0.3
@@ -137,30 +146,37 @@ class SequentialCoefficientModel(nn.Module):
         self.generator = generator
         self.constants = nn.Parameter(constants.clone())
         self.log_alpha = nn.Parameter(torch.full_like(constants, _LOG_ALPHA0))
+        # gates on each term's time variation: a term whose variation is not needed
+        # closes its gate and is fitted as a constant
+        self.log_alpha_var = nn.Parameter(torch.full_like(constants, _LOG_ALPHA0_VAR))
         self.register_buffer("support", support.clone())
         self.register_buffer("time_varying", time_varying.clone())
         self.track_mean = None  # online mode: coefficients read off while training
         self.track_std = None
         self.last_size = None
 
-    def gates(self, stochastic: bool) -> torch.Tensor:
+    def gates(self, stochastic: bool, log_alpha=None) -> torch.Tensor:
+        """Hard-concrete gates in [0, 1]: sampled in training, their median otherwise."""
+        log_alpha = self.log_alpha if log_alpha is None else log_alpha
         if stochastic:
-            u = torch.rand_like(self.log_alpha).clamp(1e-6, 1 - 1e-6)
-            s = torch.sigmoid((torch.log(u) - torch.log1p(-u) + self.log_alpha) / _BETA)
+            u = torch.rand_like(log_alpha).clamp(1e-6, 1 - 1e-6)
+            s = torch.sigmoid((torch.log(u) - torch.log1p(-u) + log_alpha) / _BETA)
         else:
-            s = torch.sigmoid(self.log_alpha)
+            s = torch.sigmoid(log_alpha)
         return (s * (_ZETA - _GAMMA) + _GAMMA).clamp(0.0, 1.0)
 
-    def expected_l0(self) -> torch.Tensor:
+    def expected_l0(self, log_alpha=None) -> torch.Tensor:
         """Probability that each gate is non-zero, (n_states, n_features)."""
-        return torch.sigmoid(self.log_alpha - _BETA * math.log(-_GAMMA / _ZETA))
+        log_alpha = self.log_alpha if log_alpha is None else log_alpha
+        return torch.sigmoid(log_alpha - _BETA * math.log(-_GAMMA / _ZETA))
 
-    def window(self, inputs, n_samples, state, stochastic=False):
+    def window(self, inputs, n_samples, state, stochastic=False, start=0):
         """Chunk coefficients (S, C, n, F) of one window, its KL and the new state."""
-        series, kl, state = self.generator.window(inputs, n_samples, state)
+        series, kl, state = self.generator.window(inputs, n_samples, state, start)
         n_states, n_features = self.constants.shape
         series = series.reshape(series.shape[0], series.shape[1], n_states, n_features)
-        ungated = self.support * (self.constants + self.time_varying * series)
+        varying = self.time_varying * self.gates(stochastic, self.log_alpha_var)
+        ungated = self.support * (self.constants + varying * series)
         self.last_size = ungated.abs().mean(dim=(0, 1)) * self.gates(False).detach()
         return ungated * self.gates(stochastic), kl, state
 
@@ -174,15 +190,15 @@ class SequentialCoefficientModel(nn.Module):
             return mean + eps * self.track_std[None], torch.zeros((), device=mean.device)
         state, parts, kl = None, [], 0.0
         for start in range(0, inputs.shape[-1], window):
-            xi, kl_w, state = self.window(inputs[..., start:start + window], n_samples, state)
+            xi, kl_w, state = self.window(inputs[..., start:start + window], n_samples, state,
+                                          start=start)
             parts.append(xi)
             kl = kl + kl_w
         return torch.cat(parts, dim=1), kl
 
-    def forward(self, inputs, n_samples: int, window: int = 4096):
+    def forward(self, inputs, n_samples: int):
         """Per-step coefficients (S, T, n, F) and KL, as :class:`CoefficientModel`."""
-        chunk = self.generator.chunk
-        window = max(chunk, window - window % chunk)
+        chunk, window = self.generator.chunk, self.generator.window_len
         xi, kl = self.chunk_series(inputs, n_samples, window)
         shape = xi.shape
         per_step = interpolate_chunks(xi.flatten(2), inputs.shape[-1], chunk)
@@ -213,10 +229,10 @@ def windowed_constants(theta, xdot, support, window):
 
 
 def _window_loss(model, theta, xdot, weights, inputs, noise_var, state, previous,
-                 stochastic):
+                 stochastic, start):
     """Loss terms of one window; returns (terms, chunk coefficients, new state)."""
     chunk = model.generator.chunk
-    xi_c, kl, state = model.window(inputs, 1, state, stochastic=stochastic)
+    xi_c, kl, state = model.window(inputs, 1, state, stochastic=stochastic, start=start)
     n_steps = theta.shape[1]
     xi = interpolate_chunks(xi_c.flatten(2), n_steps, chunk).reshape(
         xi_c.shape[0], n_steps, *xi_c.shape[2:])
@@ -240,17 +256,26 @@ def _epochs(steps, per_epoch, minimum):
 def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
                      options: SequentialTrainingOptions, verbose: bool):
     """Two-phase windowed training in place; returns the loss history (one dict per step)."""
-    chunk = model.generator.options.chunk
+    chunk = model.generator.chunk
     n_times = theta.shape[1]
     window = max(chunk, options.window - options.window % chunk)
+    model.generator.window_len = window
     starts = list(range(0, n_times, window))
     hyper = [p for name, p in model.named_parameters()
              if name.startswith(("generator.lstm", "generator.mlp", "generator.to_alpha"))]
-    hyper_ids = {id(p) for p in hyper}
-    main = [p for p in model.parameters() if id(p) not in hyper_ids]
-    make = lambda ps: torch.optim.AdamW(ps, lr=options.learning_rate,  # noqa: E731
-                                        weight_decay=options.weight_decay, amsgrad=True)
-    optimisers = {"main": make(main), "hyper": make(hyper)}
+    gates = [model.log_alpha, model.log_alpha_var]
+    codes = [model.generator.codes.weight] if model.generator.codes is not None else []
+    skip = {id(p) for p in hyper + gates + codes}
+    main = [p for p in model.parameters() if id(p) not in skip]
+    lr = options.learning_rate
+    make = lambda groups: torch.optim.AdamW(groups, lr=lr,  # noqa: E731
+                                            weight_decay=options.weight_decay, amsgrad=True)
+    optimisers = {"main": make([{"params": main},
+                                {"params": gates, "lr": lr * _GATE_LR, "weight_decay": 0.0}]),
+                  "hyper": make([{"params": hyper}])}
+    if codes:  # sparse rows: a step updates only its window's offsets
+        optimisers["codes"] = torch.optim.SparseAdam(codes, lr=lr * _CODE_LR)
+    var_cost = options.variation_sparsity + 2.0 * noise_var
     epochs = (_epochs(options.support_steps, len(starts), options.min_epochs),
               _epochs(options.refit_steps, len(starts), options.min_epochs))
     total_steps = sum(epochs) * len(starts)
@@ -261,7 +286,11 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
     bar = tqdm(total=total_steps, disable=not verbose, desc="dynamic HyperSINDy", leave=False)
     for phase, n_epochs in ((1, epochs[0]), (2, epochs[1])):
         if phase == 2:
+            with torch.no_grad():  # closed variation gates: fitted as constants from now on
+                model.time_varying *= (model.gates(False, model.log_alpha_var) > 0).to(
+                    model.time_varying.dtype)
             model.log_alpha.requires_grad_(False)
+            model.log_alpha_var.requires_grad_(False)
             if options.mode == "online":
                 history += _online_pass(model, theta, xdot, weights, inputs, noise_var, starts,
                                         window, options, bayes, bar)
@@ -269,28 +298,23 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
         for epoch in range(n_epochs):
             progress = epoch / max(n_epochs, 1)
             warming = phase == 1 and progress < options.warmup
-            # constants first (sparse, like SINDy), then time variation fades in: the
-            # generator explains what constant terms cannot, instead of re-explaining all
-            # coarse first: during the warm-up one latent per window (coefficients
-            # constant within a window, like windowed SINDy), so the support is found from
-            # slow variation before fine latents can follow the state itself
-            model.generator.chunk = window if warming else chunk
             if phase == 1:
                 rise = min(1.0, progress / options.ramp)
                 kl_w = options.kl_start * (options.kl_weight / options.kl_start) ** rise
             else:
                 kl_w = options.kl_weight
             if options.mode == "alternate" and n_epochs > 1:
-                active_groups = ("hyper",) if (epoch % 2 == 0) else ("main",)
+                active_groups = ("hyper",) if (epoch % 2 == 0) else ("main", "codes")
             else:
-                active_groups = ("main", "hyper")
+                active_groups = ("main", "hyper", "codes")
+            active_groups = tuple(g for g in active_groups if g in optimisers)
             state, previous = None, None
             size_sum, n_chunks = torch.zeros_like(model.constants), 0
             for start in starts:
                 sl = slice(start, start + window)
                 terms, xi_c, state = _window_loss(
                     model, theta[:, sl], xdot[:, sl], weights[:, sl], inputs[..., sl],
-                    noise_var, state, previous, stochastic=phase == 1)
+                    noise_var, state, previous, stochastic=phase == 1, start=start)
                 state = _detach(state)
                 previous = xi_c[:, -1:].detach()
                 size_sum += terms["size"].detach() * xi_c.shape[1]
@@ -300,7 +324,9 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
                         float(xdot.shape[-1]))
                     th = options.threshold
                     l1 = (th * torch.log1p(terms["size"] / th) * free).sum() / xdot.shape[-1]
-                    reg = options.sparsity * l0 + options.l1 * l1 \
+                    l0_var = (model.expected_l0(model.log_alpha_var) * model.time_varying
+                              * model.support * free).sum() / xdot.shape[-1]
+                    reg = options.sparsity * l0 + options.l1 * l1 + var_cost * l0_var \
                         + options.smoothness * terms["tv"]
                 else:
                     l0 = torch.zeros(())
@@ -309,14 +335,15 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
                 for name in active_groups:
                     optimisers[name].zero_grad(set_to_none=True)
                 loss.backward()
-                params = [p for name in active_groups for p in optimisers[name].param_groups[0]
-                          ["params"]]
+                params = [p for name in active_groups if name != "codes"
+                          for g in optimisers[name].param_groups for p in g["params"]]
                 nn.utils.clip_grad_norm_(params, options.grad_clip)
                 for name in active_groups:
                     optimisers[name].step()
                 for opt in optimisers.values():
-                    opt.param_groups[0]["lr"] *= options.lr_decay
-                for name in ("main", "hyper"):
+                    for g in opt.param_groups:
+                        g["lr"] *= options.lr_decay
+                for name in optimisers:
                     if name not in active_groups:
                         optimisers[name].zero_grad(set_to_none=True)
                 history.append({"phase": phase, "epoch": epoch, "loss": float(loss.detach()),
@@ -334,18 +361,15 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
                 bar.set_postfix(phase=phase, mse=f"{history[-1]['mse']:.2e}",
                                 terms=int(model.support.sum()))
     bar.close()
-    model.generator.chunk = chunk
     return history
 
 
 @torch.no_grad()
 def _prune(model, mean_size, level, free_rows):
-    """Drop free terms whose gate is closed, or whose mean |Xi| over the epoch and whose
-    constant part are both below ``level`` (the generator's variation can offset a small
-    constant on collinear features; the constant still shows the term is needed)."""
+    """Drop free terms whose gate is closed or whose mean |Xi| over the epoch is below
+    ``level`` (mean of |Xi|: a coefficient that changes sign is not pruned)."""
     gate = model.gates(stochastic=False)
-    small = (mean_size < level) & (model.constants.abs() * gate < level)
-    drop = (small | (gate <= 0)) & model.support & free_rows[:, None]
+    drop = ((mean_size < level) | (gate <= 0)) & model.support & free_rows[:, None]
     model.support &= ~drop
 
 
@@ -361,27 +385,34 @@ def _online_pass(model, theta, xdot, weights, inputs, noise_var, starts, window,
     the coefficients are recorded as it goes (chunk means and spreads)."""
     main = [p for name, p in model.named_parameters()
             if p.requires_grad and not name.startswith(("generator.lstm", "generator.mlp",
-                                                         "generator.to_alpha"))]
-    opt = torch.optim.AdamW(main, lr=options.learning_rate, weight_decay=options.weight_decay,
-                            amsgrad=True)
+                                                         "generator.to_alpha",
+                                                         "generator.codes"))]
+    opts = [torch.optim.AdamW(main, lr=options.learning_rate,
+                              weight_decay=options.weight_decay, amsgrad=True)]
+    if model.generator.codes is not None:
+        opts.append(torch.optim.SparseAdam([model.generator.codes.weight],
+                                           lr=options.learning_rate * _CODE_LR))
     means, stds, history, previous = [], [], [], None
     for start in starts:
         sl = slice(start, start + window)
         for _ in range(options.online_steps):
             terms, xi_c, _ = _window_loss(model, theta[:, sl], xdot[:, sl], weights[:, sl],
-                                          inputs[..., sl], noise_var, None, previous, False)
+                                          inputs[..., sl], noise_var, None, previous, False,
+                                          start)
             loss = terms["mse"] + options.kl_weight * terms["kl"] \
                 + options.refit_smoothness * bayes * terms["tv"]
-            opt.zero_grad(set_to_none=True)
+            for opt in opts:
+                opt.zero_grad(set_to_none=True)
             loss.backward()
             nn.utils.clip_grad_norm_(main, options.grad_clip)
-            opt.step()
+            for opt in opts:
+                opt.step()
             history.append({"phase": 2, "loss": float(loss.detach()),
                             "mse": float(terms["mse"].detach())})
         bar.update(1)
         with torch.no_grad():
-            mean, _, _ = model.window(inputs[..., sl], 0, None)
-            draws, _, _ = model.window(inputs[..., sl], 16, None)
+            mean, _, _ = model.window(inputs[..., sl], 0, None, start=start)
+            draws, _, _ = model.window(inputs[..., sl], 16, None, start=start)
         means.append(mean[0])
         stds.append(draws.std(dim=0))
         previous = mean[:, -1:]

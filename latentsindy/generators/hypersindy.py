@@ -3,9 +3,10 @@
 The architecture of the paper's supplementary section 1.2.2, read in time order:
 
 * **Encoder** (VAE, four ELU layers of width 64): reads the normalised states and
-  derivatives (x, xdot) at every time step; features are pooled over a short chunk of
-  time steps (and over trajectories that share their dynamics) into a Gaussian
-  posterior over a latent ``z_c`` (dimension 25) for each chunk ``c``.
+  derivatives (x, xdot) at every time step; features pooled over the window (and over
+  trajectories that share their dynamics) give a window latent. Each chunk ``c`` of
+  10 steps has a Gaussian posterior over ``z_c`` (dimension 25) whose mean is the
+  window latent plus a free per-chunk offset (a semi-amortised posterior).
 * **Hypernetwork** (an LSTM of two layers with 30 cells, or an MLP): reads the latents
   in time order and emits mixing weights ``alpha(c)``.
 * **Decoder** (four ELU layers of width 256) maps ``z_c`` to SINDy coefficients with
@@ -111,14 +112,16 @@ class HyperSINDy(Generator):
     def __init__(self, n_inputs: int, n_outputs: int, options: HyperSINDyOptions):
         super().__init__()
         o = self.options = options
-        self.chunk = o.chunk  # time steps per latent; training may coarsen it temporarily
+        self.chunk = o.chunk
+        self.window_len = 1000  # steps per window; the trainer sets it
+        self.codes = None  # per-chunk free offsets of the latent means, see allocate()
         layers: list[nn.Module] = []
         width = n_inputs
         for _ in range(o.encoder_layers - 1):
             layers += [nn.Linear(width, o.encoder_hidden), nn.ELU()]
             width = o.encoder_hidden
         self.encoder = nn.Sequential(*layers)
-        self.to_latent = nn.Linear(width, 2 * o.latent_dim)
+        self.to_latent = nn.Linear(2 * width, 2 * o.latent_dim)
         if o.hypernetwork == "lstm":
             self.lstm = nn.LSTM(o.latent_dim, o.lstm_hidden, o.lstm_layers, batch_first=True)
             self.mlp = None
@@ -136,17 +139,40 @@ class HyperSINDy(Generator):
         nn.init.zeros_(last.bases)
 
     # ---------------------------------------------------------------- pieces
+    def allocate(self, n_times: int) -> None:
+        """Create the per-chunk offsets for a series of ``n_times`` steps (zeros).
+
+        The posterior mean of chunk ``c`` is the encoder's window latent plus a free
+        offset ``delta_c`` (a semi-amortised posterior): the encoder supplies what the
+        window's data say, the offsets let every chunk be fitted directly, as timeVAE's
+        decoder fits its knots. Sparse gradients: a step touches only its window's rows.
+        """
+        n_chunks = -(-n_times // self.chunk)
+        self.codes = nn.Embedding(n_chunks, self.options.latent_dim, sparse=True)
+        nn.init.zeros_(self.codes.weight)
+
     def encode(self, inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, C_in, W) -> posterior mean and log-variance per chunk, (n_chunks, latent)."""
-        h = self.encoder(inputs.transpose(1, 2)).mean(dim=0)  # (W, H), pooled trajectories
-        n_steps, chunk = h.shape[0], self.chunk
-        n_chunks = -(-n_steps // chunk)
-        index = torch.arange(n_steps, device=h.device) // chunk
-        sums = torch.zeros(n_chunks, h.shape[1], dtype=h.dtype, device=h.device)
-        sums.index_add_(0, index, h)
-        counts = torch.bincount(index, minlength=n_chunks).to(h.dtype)[:, None]
-        mu, logvar = self.to_latent(sums / counts).chunk(2, dim=-1)
+        """(B, C_in, W) -> one posterior mean and log-variance for the window, (latent,).
+
+        Per-step features of (x, xdot) are pooled over the window and the trajectories
+        (mean and spread), so the window latent cannot follow the state step by step.
+        """
+        h = self.encoder(inputs.transpose(1, 2))  # (B, W, H)
+        pooled = torch.cat([h.mean(dim=1), h.std(dim=1, unbiased=False)], dim=-1).mean(dim=0)
+        mu, logvar = self.to_latent(pooled).chunk(2, dim=-1)
         return mu, logvar.clamp(-12.0, 6.0)
+
+    def chunk_offsets(self, start: int, n_steps: int, like: torch.Tensor) -> torch.Tensor:
+        """Free offsets (n_chunks, latent) of the chunks of steps [start, start + n_steps)."""
+        first = start // self.chunk
+        n_chunks = -(-n_steps // self.chunk)
+        if self.codes is None:
+            return torch.zeros(n_chunks, self.options.latent_dim, dtype=like.dtype,
+                               device=like.device)
+        index = torch.arange(first, first + n_chunks, device=like.device)
+        inside = index < self.codes.num_embeddings
+        out = self.codes(index.clamp(max=self.codes.num_embeddings - 1))
+        return out * inside[:, None].to(out.dtype)
 
     def mixing(self, z: torch.Tensor, state):
         """Latents (S, C, latent) -> alpha (S, C, n_bases) and the carried state."""
@@ -164,13 +190,16 @@ class HyperSINDy(Generator):
         return h
 
     # -------------------------------------------------------------- interface
-    def window(self, inputs: torch.Tensor, n_samples: int, state=None):
+    def window(self, inputs: torch.Tensor, n_samples: int, state=None, start: int = 0):
         """One window in time order: chunk coefficients (S, C, n_out), KL, new state.
 
-        ``state`` is the hypernetwork state at the window's start (``None``: zeros);
-        the returned state continues into the next window.
+        ``start`` is the window's first step in the series (it selects the chunk
+        offsets); ``state`` is the hypernetwork state at the window's start (``None``:
+        zeros); the returned state continues into the next window.
         """
-        mu, logvar = self.encode(inputs)
+        mu_w, logvar_w = self.encode(inputs)
+        mu = mu_w[None] + self.chunk_offsets(start, inputs.shape[-1], mu_w)
+        logvar = logvar_w[None].expand_as(mu)
         if n_samples == 0:
             z = mu[None]
         else:
@@ -179,12 +208,14 @@ class HyperSINDy(Generator):
         alpha, state = self.mixing(z, state)
         return self.decode(z, alpha), gaussian_kl(mu, logvar), state
 
-    def sample(self, inputs: torch.Tensor, n_samples: int, window: int = 4096):
+    def sample(self, inputs: torch.Tensor, n_samples: int, window: int | None = None):
         """Whole series, read window by window: (S, T, n_out) and the total KL."""
-        window = max(self.options.chunk, window - window % self.options.chunk)
+        window = window or self.window_len
+        window = max(self.chunk, window - window % self.chunk)
         state, parts, kl = None, [], 0.0
         for start in range(0, inputs.shape[-1], window):
-            series, kl_w, state = self.window(inputs[..., start:start + window], n_samples, state)
+            series, kl_w, state = self.window(inputs[..., start:start + window], n_samples,
+                                              state, start)
             parts.append(series)
             kl = kl + kl_w
         return interpolate_chunks(torch.cat(parts, dim=1), inputs.shape[-1], self.chunk), kl
