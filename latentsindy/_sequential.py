@@ -2,7 +2,9 @@
 
 The series is read in time order in windows; the hypernetwork's state is carried from
 one window to the next and detached (truncated backpropagation through time), so
-memory is set by the window, not by the series length. The loss is the one of
+memory is set by the window, not by the series length (the per-chunk latent offsets,
+25 numbers per 10 steps, are the only per-sample parameters; a step updates its
+window's rows only). The loss is the one of
 :mod:`latentsindy._training` (derivative misfit, KL in ELBO units, sparsity, normalised
 total variation) with the paper's HyperSINDy choices: relaxed-L0 (hard-concrete)
 gates, a KL weight warmed up from ``kl_start``, AdamW with amsgrad and an exponential
@@ -20,7 +22,12 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from ._training import least_squares_constants
-from .generators.hypersindy import interpolate_chunks
+from .generators.hypersindy import (
+    chunk_centres,
+    detach_state,
+    interpolate_at,
+    interpolate_chunks,
+)
 
 _EPS = torch.finfo(torch.float32).eps
 MODES = ("alternate", "joint", "online")
@@ -40,13 +47,14 @@ class SequentialTrainingOptions:
 
     Attributes
     ----------
-    mode : {"alternate", "joint", "online"}
-        ``"alternate"`` (default; the paper's mode for continuously varying
-        coefficients): the hypernetwork and the main module (encoder, decoder, basis
-        tensors, constants, gates) take turns, one epoch each. ``"joint"``: both at
-        every step. ``"online"``: the support phase as in ``"alternate"``, then one
-        pass in time order in which the main module adapts to each window for
-        ``online_steps`` steps and the coefficients are read off as it goes (the
+    mode : {"joint", "alternate", "online"}
+        ``"joint"`` (default): every part is trained at every step. ``"alternate"``
+        (the paper's mode for continuously varying coefficients): the hypernetwork and
+        the main module (encoder, decoder, basis tensors, offsets, constants, gates)
+        take turns, one epoch each; measured slower to converge and, on a single
+        window, not converging. ``"online"``: the support phase as in ``"joint"``,
+        then one pass in time order in which the main module adapts to each window
+        for ``online_steps`` steps and the coefficients are read off as it goes (the
         paper's mode for switching systems; the hypernetwork is not used).
     window : int
         Time steps per optimiser step (truncated backpropagation length).
@@ -86,7 +94,7 @@ class SequentialTrainingOptions:
         Optimiser steps per window in ``mode="online"``.
     """
 
-    mode: str = "alternate"
+    mode: str = "joint"
     window: int = 1000
     support_steps: int = 800
     refit_steps: int = 700
@@ -229,20 +237,35 @@ def windowed_constants(theta, xdot, support, window):
 
 
 def _window_loss(model, theta, xdot, weights, inputs, noise_var, state, previous,
-                 stochastic, start):
-    """Loss terms of one window; returns (terms, chunk coefficients, new state)."""
-    chunk = model.generator.chunk
-    xi_c, kl, state = model.window(inputs, 1, state, stochastic=stochastic, start=start)
-    n_steps = theta.shape[1]
-    xi = interpolate_chunks(xi_c.flatten(2), n_steps, chunk).reshape(
-        xi_c.shape[0], n_steps, *xi_c.shape[2:])
-    pred = torch.einsum("btf,stnf->sbtn", theta, xi)
-    mse = torch.mean(weights[None] * (pred - xdot[None]) ** 2)
-    kl = 2.0 * noise_var * kl / xdot.numel()
+                 stochastic, start, stop):
+    """Loss terms of the window starting at ``start``; returns (terms, chunk
+    coefficients, new state).
+
+    The misfit covers the steps from the previous window's last chunk centre to this
+    window's last chunk centre, interpolating from the previous window's last chunk, so
+    training sees exactly the coefficients that the whole-series read-out interpolates.
+    """
+    chunk, n_times = model.generator.chunk, theta.shape[1]
+    xi_c, kl, state = model.window(inputs[..., start:stop], 1, state, stochastic=stochastic,
+                                   start=start)
+    centres = chunk_centres(start, stop, chunk, theta.dtype, theta.device)
+    values = xi_c.flatten(2)
+    if previous is not None:
+        centres = torch.cat([centres.new_tensor([start - (chunk + 1) / 2]), centres])
+        values = torch.cat([previous.flatten(2), values], dim=1)
+    lo = int(math.floor(float(centres[0]))) + 1 if previous is not None else start
+    hi = int(math.floor(float(centres[-1]))) + 1 if stop < n_times else n_times
+    steps = torch.arange(lo, hi, dtype=theta.dtype, device=theta.device)
+    xi = interpolate_at(values, centres, steps).reshape(xi_c.shape[0], hi - lo,
+                                                        *xi_c.shape[2:])
+    xdot_w = xdot[:, lo:hi]
+    pred = torch.einsum("btf,stnf->sbtn", theta[:, lo:hi], xi)
+    mse = torch.mean(weights[None, :, lo:hi] * (pred - xdot_w[None]) ** 2)
+    kl = 2.0 * noise_var * kl / xdot_w.numel()
     active = model.support.to(xi.dtype)
     n_active = active.sum().clamp_min(1.0)
     track = xi_c if previous is None else torch.cat([previous, xi_c], dim=1)
-    tv = ((track[:, 1:] - track[:, :-1]).abs().sum(dim=(0, 1)) / (n_steps * xi_c.shape[0])
+    tv = ((track[:, 1:] - track[:, :-1]).abs().sum(dim=(0, 1)) / ((hi - lo) * xi_c.shape[0])
           * active).sum() / n_active
     size = model.last_size  # mean |Xi| in this window, with the gates' expected values
     tv = tv / ((size * active).sum() / n_active + _EPS).detach()
@@ -276,9 +299,11 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
     if codes:  # sparse rows: a step updates only its window's offsets
         optimisers["codes"] = torch.optim.SparseAdam(codes, lr=lr * _CODE_LR)
     var_cost = options.variation_sparsity + 2.0 * noise_var
-    epochs = (_epochs(options.support_steps, len(starts), options.min_epochs),
-              _epochs(options.refit_steps, len(starts), options.min_epochs))
-    total_steps = sum(epochs) * len(starts)
+    shifted = n_times > window  # window grids shift every epoch (see below)
+    per_epoch = len(starts) + int(shifted)
+    epochs = (_epochs(options.support_steps, per_epoch, options.min_epochs),
+              _epochs(options.refit_steps, per_epoch, options.min_epochs))
+    total_steps = sum(epochs) * per_epoch
     free = free_rows.to(theta.dtype)[:, None]
     bayes = min(1.0, max(0.01, noise_var * n_times * float(model.support.sum())
                          / theta.new_tensor(xdot.shape[-1]).item()))
@@ -308,14 +333,17 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
             else:
                 active_groups = ("main", "hyper", "codes")
             active_groups = tuple(g for g in active_groups if g in optimisers)
+            # a fresh window grid every epoch (shifted by whole chunks): no chunk sits at
+            # the end of a window, where it is fitted from one side only, every epoch
+            offset = chunk * int(torch.randint(0, window // chunk, ())) if shifted else 0
+            bounds = ([0] if offset else []) + list(range(offset, n_times, window)) + [n_times]
             state, previous = None, None
             size_sum, n_chunks = torch.zeros_like(model.constants), 0
-            for start in starts:
-                sl = slice(start, start + window)
+            for start, stop in zip(bounds[:-1], bounds[1:], strict=True):
                 terms, xi_c, state = _window_loss(
-                    model, theta[:, sl], xdot[:, sl], weights[:, sl], inputs[..., sl],
-                    noise_var, state, previous, stochastic=phase == 1, start=start)
-                state = _detach(state)
+                    model, theta, xdot, weights, inputs, noise_var, state, previous,
+                    stochastic=phase == 1, start=start, stop=stop)
+                state = detach_state(state)
                 previous = xi_c[:, -1:].detach()
                 size_sum += terms["size"].detach() * xi_c.shape[1]
                 n_chunks += xi_c.shape[1]
@@ -373,12 +401,6 @@ def _prune(model, mean_size, level, free_rows):
     model.support &= ~drop
 
 
-def _detach(state):
-    if state is None:
-        return None
-    return tuple(s.detach() for s in state)
-
-
 def _online_pass(model, theta, xdot, weights, inputs, noise_var, starts, window, options,
                  bayes, bar):
     """Read the series once in time order; the main module adapts to every window and
@@ -396,9 +418,9 @@ def _online_pass(model, theta, xdot, weights, inputs, noise_var, starts, window,
     for start in starts:
         sl = slice(start, start + window)
         for _ in range(options.online_steps):
-            terms, xi_c, _ = _window_loss(model, theta[:, sl], xdot[:, sl], weights[:, sl],
-                                          inputs[..., sl], noise_var, None, previous, False,
-                                          start)
+            terms, xi_c, _ = _window_loss(model, theta, xdot, weights, inputs, noise_var,
+                                          None, previous, False, start,
+                                          min(start + window, theta.shape[1]))
             loss = terms["mse"] + options.kl_weight * terms["kl"] \
                 + options.refit_smoothness * bayes * terms["tv"]
             for opt in opts:

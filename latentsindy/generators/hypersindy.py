@@ -3,10 +3,11 @@
 The architecture of the paper's supplementary section 1.2.2, read in time order:
 
 * **Encoder** (VAE, four ELU layers of width 64): reads the normalised states and
-  derivatives (x, xdot) at every time step; features pooled over the window (and over
-  trajectories that share their dynamics) give a window latent. Each chunk ``c`` of
-  10 steps has a Gaussian posterior over ``z_c`` (dimension 25) whose mean is the
-  window latent plus a free per-chunk offset (a semi-amortised posterior).
+  derivatives (x, xdot) at every time step; its features, pooled per chunk of 10
+  steps (and over trajectories that share their dynamics) and averaged over the past
+  ``context`` steps, give each chunk ``c`` a Gaussian posterior over ``z_c``
+  (dimension 25). The posterior mean also has a free per-chunk offset (a
+  semi-amortised posterior).
 * **Hypernetwork** (an LSTM of two layers with 30 cells, or an MLP): reads the latents
   in time order and emits mixing weights ``alpha(c)``.
 * **Decoder** (four ELU layers of width 256) maps ``z_c`` to SINDy coefficients with
@@ -21,6 +22,7 @@ backpropagation through time) with memory set by the window, not by the series.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -54,6 +56,9 @@ class HyperSINDyOptions:
     chunk : int
         Time steps that share one latent (the paper's "batch size (time steps)",
         1-10). Coefficients are interpolated linearly between chunk centres.
+    context : int
+        Time constant, in steps, of the encoder's moving average over the past: the
+        stretch of data a latent summarises.
     """
 
     latent_dim: int = 25
@@ -66,10 +71,12 @@ class HyperSINDyOptions:
     lstm_hidden: int = 30
     lstm_layers: int = 2
     chunk: int = 10
+    context: int = 500
 
     def __post_init__(self):
         for name in ("latent_dim", "encoder_hidden", "encoder_layers", "decoder_hidden",
-                     "decoder_layers", "n_bases", "lstm_hidden", "lstm_layers", "chunk"):
+                     "decoder_layers", "n_bases", "lstm_hidden", "lstm_layers", "chunk",
+                     "context"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"HyperSINDyOptions.{name} must be a positive int; "
@@ -151,16 +158,40 @@ class HyperSINDy(Generator):
         self.codes = nn.Embedding(n_chunks, self.options.latent_dim, sparse=True)
         nn.init.zeros_(self.codes.weight)
 
-    def encode(self, inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, C_in, W) -> one posterior mean and log-variance for the window, (latent,).
+    def encode(self, inputs: torch.Tensor, memory=None):
+        """(B, C_in, W) -> posterior means and log-variances per chunk, and the memory.
 
-        Per-step features of (x, xdot) are pooled over the window and the trajectories
-        (mean and spread), so the window latent cannot follow the state step by step.
+        Per-step features of (x, xdot) are pooled per chunk (and over trajectories),
+        then averaged over the past with an exponential moving average of time constant
+        ``context`` steps, carried from window to window (bias-corrected at the start).
+        The latent thus summarises the recent stretch of data, not the current state,
+        and changes smoothly across window boundaries.
         """
-        h = self.encoder(inputs.transpose(1, 2))  # (B, W, H)
-        pooled = torch.cat([h.mean(dim=1), h.std(dim=1, unbiased=False)], dim=-1).mean(dim=0)
+        h = self.encoder(inputs.transpose(1, 2)).mean(dim=0)  # (W, H)
+        feats = torch.cat([h, h * h], dim=-1)
+        n_steps, chunk = feats.shape[0], self.chunk
+        n_chunks = -(-n_steps // chunk)
+        index = torch.arange(n_steps, device=h.device) // chunk
+        sums = torch.zeros(n_chunks, feats.shape[1], dtype=h.dtype, device=h.device)
+        sums.index_add_(0, index, feats)
+        counts = torch.bincount(index, minlength=n_chunks).to(h.dtype)[:, None]
+        per_chunk = (sums / counts).double()
+        decay = math.exp(-chunk / self.options.context)
+        k = torch.arange(n_chunks, device=h.device, dtype=torch.float64)
+        if memory is None:
+            memory = (torch.zeros_like(per_chunk[0]), per_chunk.new_zeros(()))
+        ema0, norm0 = memory
+        # e_c = decay^(c+1) e_{-1} + (1 - decay) sum_{j<=c} decay^(c-j) f_j, in closed form
+        grow = decay ** (-k)
+        scan = torch.cumsum(per_chunk * grow[:, None], dim=0)
+        ema = decay ** (k + 1)[:, None] * ema0 + (1 - decay) * decay ** k[:, None] * scan
+        norm = decay ** (k + 1) * norm0 + (1 - decay ** (k + 1))
+        mean_sq = (ema / norm[:, None]).float()
+        width = h.shape[1]
+        mean, sq = mean_sq[:, :width], mean_sq[:, width:]
+        pooled = torch.cat([mean, (sq - mean * mean).clamp_min(0).add(1e-8).sqrt()], dim=-1)
         mu, logvar = self.to_latent(pooled).chunk(2, dim=-1)
-        return mu, logvar.clamp(-12.0, 6.0)
+        return mu, logvar.clamp(-12.0, 6.0), (ema[-1], norm[-1])
 
     def chunk_offsets(self, start: int, n_steps: int, like: torch.Tensor) -> torch.Tensor:
         """Free offsets (n_chunks, latent) of the chunks of steps [start, start + n_steps)."""
@@ -197,16 +228,20 @@ class HyperSINDy(Generator):
         offsets); ``state`` is the hypernetwork state at the window's start (``None``:
         zeros); the returned state continues into the next window.
         """
-        mu_w, logvar_w = self.encode(inputs)
-        mu = mu_w[None] + self.chunk_offsets(start, inputs.shape[-1], mu_w)
-        logvar = logvar_w[None].expand_as(mu)
+        lstm_state, memory, last = state if state is not None else (None, None, None)
+        mu_enc, logvar, memory = self.encode(inputs, memory)
+        mu = mu_enc + self.chunk_offsets(start, inputs.shape[-1], mu_enc)
         if n_samples == 0:
             z = mu[None]
         else:
             eps = torch.randn((n_samples, *mu.shape), dtype=mu.dtype, device=mu.device)
             z = mu[None] + eps * torch.exp(0.5 * logvar)[None]
-        alpha, state = self.mixing(z, state)
-        return self.decode(z, alpha), gaussian_kl(mu, logvar), state
+        alpha, lstm_state = self.mixing(z, lstm_state)
+        # random-walk prior z_c ~ N(mean of z_{c-1}, 1), z_0 ~ N(0, 1): the KL charges
+        # for changes of the latent, not for its size
+        before = torch.zeros_like(mu[:1]) if last is None else last[None]
+        kl = gaussian_kl(mu - torch.cat([before, mu[:-1]]), logvar)
+        return self.decode(z, alpha), kl, (lstm_state, memory, mu[-1])
 
     def sample(self, inputs: torch.Tensor, n_samples: int, window: int | None = None):
         """Whole series, read window by window: (S, T, n_out) and the total KL."""
@@ -221,16 +256,36 @@ class HyperSINDy(Generator):
         return interpolate_chunks(torch.cat(parts, dim=1), inputs.shape[-1], self.chunk), kl
 
 
-def interpolate_chunks(values: torch.Tensor, n_steps: int, chunk: int) -> torch.Tensor:
-    """Chunk values (S, C, K) -> per-step values (S, n_steps, K), linear between centres."""
-    n_chunks = values.shape[1]
-    if n_chunks == 1:
-        return values.expand(-1, n_steps, -1)
-    steps = torch.arange(n_steps, device=values.device, dtype=values.dtype)
-    starts = torch.arange(n_chunks, device=values.device, dtype=values.dtype) * chunk
-    ends = torch.clamp(starts + chunk, max=n_steps)
-    centres = (starts + ends - 1) / 2
-    pos = torch.searchsorted(centres, steps).clamp(1, n_chunks - 1)
+def detach_state(state):
+    """Cut the graph behind a carried state (truncated backpropagation through time)."""
+    if state is None:
+        return None
+    if isinstance(state, tuple):
+        return tuple(detach_state(s) for s in state)
+    return state.detach()
+
+
+def chunk_centres(start: int, stop: int, chunk: int, dtype=torch.float32, device=None):
+    """Centres of the chunks of steps [start, stop) (the last chunk may be short)."""
+    lo = torch.arange(start, stop, chunk, dtype=dtype, device=device)
+    hi = torch.clamp(lo + chunk, max=stop)
+    return (lo + hi - 1) / 2
+
+
+def interpolate_at(values: torch.Tensor, centres: torch.Tensor,
+                   steps: torch.Tensor) -> torch.Tensor:
+    """Values (S, K, M) at ``centres`` (K,) -> (S, len(steps), M), linear in between and
+    constant beyond the first and last centre."""
+    if values.shape[1] == 1:
+        return values.expand(-1, steps.shape[0], -1)
+    pos = torch.searchsorted(centres, steps).clamp(1, values.shape[1] - 1)
     left, right = centres[pos - 1], centres[pos]
     frac = ((steps - left) / (right - left)).clamp(0.0, 1.0)[None, :, None]
     return values[:, pos - 1] * (1 - frac) + values[:, pos] * frac
+
+
+def interpolate_chunks(values: torch.Tensor, n_steps: int, chunk: int) -> torch.Tensor:
+    """Chunk values (S, C, K) -> per-step values (S, n_steps, K), linear between centres."""
+    centres = chunk_centres(0, n_steps, chunk, values.dtype, values.device)
+    steps = torch.arange(n_steps, dtype=values.dtype, device=values.device)
+    return interpolate_at(values, centres, steps)
