@@ -81,6 +81,65 @@ class CoefficientSeries:
         return [(self.state_names[i], self.feature_names[j]) for i, j in zip(rows, cols,
                                                                               strict=True)]
 
+    def switch_times(self, min_jump: float = 0.2, window: int | None = None,
+                     terms=None) -> np.ndarray:
+        """Times at which the coefficients switch, read off the coefficient track.
+
+        At every time the mean of each varying coefficient over the ``window`` samples
+        after it is compared with the mean over the ``window`` samples before it,
+        relative to the coefficient's typical size (its mean absolute value). Each
+        stretch of time where the largest such change over all terms reaches
+        ``min_jump`` is one switch, placed where the change peaks. A smooth transition
+        gives one switch at its middle; a coefficient that varies continuously gives
+        one at each steep part.
+
+        Parameters
+        ----------
+        min_jump : float
+            Smallest relative change of a coefficient that counts as a switch.
+        window : int, optional
+            Samples on each side (default: 1/20 of the series, at least 2).
+        terms : list of (state, feature), optional
+            Coefficients to read (default: every varying one). A small coefficient's
+            wiggles are large relative to its own size: name the terms of interest.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> t = np.linspace(0, 10, 1000)
+        >>> a = np.where(t < 4, -1.0, -3.0)[:, None, None]
+        >>> c = CoefficientSeries.from_samples(t, a, a[None], ["x"], ["y"],
+        ...                                    np.ones((1, 1), bool), np.ones((1, 1), bool))
+        >>> c.switch_times().round(2).tolist()
+        [4.0]
+        """
+        n_times = len(self.times)
+        window = max(2, n_times // 20) if window is None else int(window)
+        if window < 1 or 2 * window > n_times:
+            raise ValueError(f"window must be between 1 and half the series ({n_times // 2}); "
+                             f"got {window}.")
+        if terms is None:
+            rows, cols = np.nonzero(self.support & self.time_varying)
+        else:
+            rows = np.array([self._state(a) for a, _ in terms], dtype=int)
+            cols = np.array([self._feature(b) for _, b in terms], dtype=int)
+        if len(rows) == 0:
+            return np.array([])
+        x = self.mean[:, rows, cols]
+        x = x / np.maximum(np.abs(x).mean(axis=0), 1e-300)
+        csum = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
+        k = np.arange(window, n_times - window + 1)
+        before = (csum[k] - csum[k - window]) / window
+        after = (csum[k + window] - csum[k]) / window
+        change = np.abs(after - before).max(axis=1)
+        # every contiguous stretch where the change reaches min_jump is one switch,
+        # placed where the change peaks
+        above = np.concatenate([[False], change >= min_jump, [False]])
+        edges = np.flatnonzero(np.diff(above.astype(int)))
+        found = [int(k[a + np.argmax(change[a:b])]) for a, b in zip(edges[::2], edges[1::2],
+                                                                     strict=True)]
+        return self.times[found] if found else np.array([])
+
     def summary(self) -> str:
         lines = [f"Time-varying SINDy coefficients: {len(self.times)} times, "
                  f"{self.samples.shape[0]} samples"]

@@ -55,7 +55,8 @@ class SequentialTrainingOptions:
         window, not converging. ``"online"``: the support phase as in ``"joint"``,
         then one pass in time order in which the main module adapts to each window
         for ``online_steps`` steps and the coefficients are read off as it goes (the
-        paper's mode for switching systems; the hypernetwork is not used).
+        paper's mode for switching systems; the hypernetwork is not used). Switch
+        points are then read off the track: ``coefficients().switch_times()``.
     window : int
         Time steps per optimiser step (truncated backpropagation length).
     support_steps, refit_steps : int

@@ -147,3 +147,26 @@ def test_get_and_set_params():
 def test_predict_before_fit():
     with pytest.raises(RuntimeError, match="not fitted yet"):
         DynamicSINDy().predict()
+
+
+def _series(values, t):
+    from latentsindy import CoefficientSeries
+
+    mean = np.asarray(values, dtype=float)[:, None, None]
+    return CoefficientSeries.from_samples(t, mean, mean[None], ["x"], ["y"],
+                                          np.ones((1, 1), bool), np.ones((1, 1), bool))
+
+
+def test_switch_times_against_known_switches():
+    t = np.linspace(0.0, 20.0, 2000)
+    two = _series(systems.Switches((-1.0, -3.0, -1.5), (7.0, 14.0))(t), t)
+    assert np.allclose(two.switch_times(), [7.0, 14.0], atol=0.05)
+    sigmoid = _series(systems.Sigmoid(-1.0, -4.0, at=12.0, sharpness=1.0)(t), t)
+    assert np.allclose(sigmoid.switch_times(), [12.0], atol=0.2)  # one, at the middle
+    flat = _series(-2.0 + 0.01 * np.sin(t), t)
+    assert flat.switch_times().size == 0
+    with pytest.raises(ValueError, match="window must be between 1 and half the series"):
+        flat.switch_times(window=1500)
+    assert np.allclose(two.switch_times(terms=[("x", "y")]), [7.0, 14.0], atol=0.05)
+    with pytest.raises(KeyError, match="Unknown feature 'z'"):
+        two.switch_times(terms=[("x", "z")])
