@@ -14,14 +14,13 @@ learning-rate decay.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import nn
 from tqdm.auto import tqdm
 
-from ._training import least_squares_constants
+from ._training import CoefficientModel, check_nonnegative_fields, least_squares_constants
 from .generators.hypersindy import (
     chunk_centres,
     detach_state,
@@ -33,8 +32,8 @@ _EPS = torch.finfo(torch.float32).eps
 MODES = ("alternate", "joint", "online")
 # hard-concrete gate constants (Louizos et al. 2018)
 _BETA, _GAMMA, _ZETA = 2.0 / 3.0, -0.1, 1.1
-_LOG_ALPHA0 = 5.0  # gates start open: P(gate < 1) = 3%
-_LOG_ALPHA0_VAR = 5.0  # variation gates start open too
+_LOG_ALPHA0 = 5.0  # gates (on terms and on their variation) start open: P(gate < 1) = 3%
+_HYPERNETWORK = ("generator.lstm", "generator.mlp", "generator.to_alpha")  # parameter names
 _GATE_LR = 10.0  # gates learn ten times faster than the networks
 _CODE_LR = 30.0  # per-chunk offsets: one update per epoch each, so large steps
 
@@ -120,18 +119,7 @@ class SequentialTrainingOptions:
         if self.mode not in MODES:
             raise ValueError(f"SequentialTrainingOptions.mode must be one of {MODES}; "
                              f"got {self.mode!r}.")
-        for f in fields(self):
-            if f.name == "mode":
-                continue
-            value = getattr(self, f.name)
-            if f.type == "int":
-                if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
-                    raise ValueError(f"SequentialTrainingOptions.{f.name} must be an int >= 0; "
-                                     f"got {value!r}")
-            elif (isinstance(value, bool) or not isinstance(value, int | float)
-                  or not math.isfinite(value) or value < 0):
-                raise ValueError(f"SequentialTrainingOptions.{f.name} must be a number >= 0; "
-                                 f"got {value!r}")
+        check_nonnegative_fields(self, skip=("mode",))
         for name in ("window", "min_epochs", "online_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"SequentialTrainingOptions.{name} must be >= 1; "
@@ -147,19 +135,15 @@ class SequentialTrainingOptions:
                              f"got {self.kl_start}")
 
 
-class SequentialCoefficientModel(nn.Module):
+class SequentialCoefficientModel(CoefficientModel):
     """Xi = support * gate * (constants + time_varying * generator), chunk by chunk."""
 
     def __init__(self, generator, constants, support, time_varying):
-        super().__init__()
-        self.generator = generator
-        self.constants = nn.Parameter(constants.clone())
+        super().__init__(generator, constants, support, time_varying)
         self.log_alpha = nn.Parameter(torch.full_like(constants, _LOG_ALPHA0))
         # gates on each term's time variation: a term whose variation is not needed
         # closes its gate and is fitted as a constant
-        self.log_alpha_var = nn.Parameter(torch.full_like(constants, _LOG_ALPHA0_VAR))
-        self.register_buffer("support", support.clone())
-        self.register_buffer("time_varying", time_varying.clone())
+        self.log_alpha_var = nn.Parameter(torch.full_like(constants, _LOG_ALPHA0))
         self.track_mean = None  # online mode: coefficients read off while training
         self.track_std = None
         self.last_size = None
@@ -285,8 +269,7 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
     window = max(chunk, options.window - options.window % chunk)
     model.generator.window_len = window
     starts = list(range(0, n_times, window))
-    hyper = [p for name, p in model.named_parameters()
-             if name.startswith(("generator.lstm", "generator.mlp", "generator.to_alpha"))]
+    hyper = [p for name, p in model.named_parameters() if name.startswith(_HYPERNETWORK)]
     gates = [model.log_alpha, model.log_alpha_var]
     codes = [model.generator.codes.weight] if model.generator.codes is not None else []
     skip = {id(p) for p in hyper + gates + codes}
@@ -307,8 +290,9 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
     total_steps = sum(epochs) * per_epoch
     free = free_rows.to(theta.dtype)[:, None]
     bayes = min(1.0, max(0.01, noise_var * n_times * float(model.support.sum())
-                         / theta.new_tensor(xdot.shape[-1]).item()))
-    history, step = [], 0
+                         / xdot.shape[-1]))
+    n_states = float(xdot.shape[-1])
+    history = []
     bar = tqdm(total=total_steps, disable=not verbose, desc="dynamic HyperSINDy", leave=False)
     for phase, n_epochs in ((1, epochs[0]), (2, epochs[1])):
         if phase == 2:
@@ -349,12 +333,11 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
                 size_sum += terms["size"].detach() * xi_c.shape[1]
                 n_chunks += xi_c.shape[1]
                 if phase == 1:
-                    l0 = (model.expected_l0() * model.support * free).sum() / theta.new_tensor(
-                        float(xdot.shape[-1]))
+                    l0 = (model.expected_l0() * model.support * free).sum() / n_states
                     th = options.threshold
-                    l1 = (th * torch.log1p(terms["size"] / th) * free).sum() / xdot.shape[-1]
+                    l1 = (th * torch.log1p(terms["size"] / th) * free).sum() / n_states
                     l0_var = (model.expected_l0(model.log_alpha_var) * model.time_varying
-                              * model.support * free).sum() / xdot.shape[-1]
+                              * model.support * free).sum() / n_states
                     reg = options.sparsity * l0 + options.l1 * l1 + var_cost * l0_var \
                         + options.smoothness * terms["tv"]
                 else:
@@ -379,8 +362,7 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
                                 "mse": float(terms["mse"].detach()),
                                 "kl": float(terms["kl"].detach()),
                                 "tv": float(terms["tv"].detach()), "l0": float(l0.detach()),
-                                "kl_weight": kl_w})
-                step += 1
+                                "kl_weight": kl_w, "trained": active_groups})
                 bar.update(1)
             if phase == 1 and not warming:
                 level = options.threshold * min(1.0, (progress + 1 / n_epochs - options.warmup)
@@ -407,9 +389,7 @@ def _online_pass(model, theta, xdot, weights, inputs, noise_var, starts, window,
     """Read the series once in time order; the main module adapts to every window and
     the coefficients are recorded as it goes (chunk means and spreads)."""
     main = [p for name, p in model.named_parameters()
-            if p.requires_grad and not name.startswith(("generator.lstm", "generator.mlp",
-                                                         "generator.to_alpha",
-                                                         "generator.codes"))]
+            if p.requires_grad and not name.startswith((*_HYPERNETWORK, "generator.codes"))]
     opts = [torch.optim.AdamW(main, lr=options.learning_rate,
                               weight_decay=options.weight_decay, amsgrad=True)]
     if model.generator.codes is not None:

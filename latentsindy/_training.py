@@ -70,13 +70,7 @@ class TrainingOptions:
     grad_clip: float = 1.0
 
     def __post_init__(self):
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.type == "int":
-                if not isinstance(value, int | np.integer) or value < 0:
-                    raise ValueError(f"TrainingOptions.{f.name} must be an int >= 0; got {value!r}")
-            elif not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
-                raise ValueError(f"TrainingOptions.{f.name} must be a number >= 0; got {value!r}")
+        check_nonnegative_fields(self)
         if self.prune_every < 1:
             raise ValueError(f"TrainingOptions.prune_every must be >= 1; got {self.prune_every}")
         if not 0 <= self.warmup < self.ramp <= 1:
@@ -85,6 +79,21 @@ class TrainingOptions:
         if self.learning_rate <= 0:
             raise ValueError("TrainingOptions.learning_rate must be > 0; "
                              f"got {self.learning_rate}")
+
+
+def check_nonnegative_fields(options, skip=()) -> None:
+    """Every field of an options dataclass (bar ``skip``) is an int or number >= 0."""
+    name = type(options).__name__
+    for f in fields(options):
+        if f.name in skip:
+            continue
+        value = getattr(options, f.name)
+        if f.type == "int":
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
+                raise ValueError(f"{name}.{f.name} must be an int >= 0; got {value!r}")
+        elif (isinstance(value, bool) or not isinstance(value, int | float)
+              or not math.isfinite(value) or value < 0):
+            raise ValueError(f"{name}.{f.name} must be a number >= 0; got {value!r}")
 
 
 def make_training_options(given, cls=None, generator="timevae"):

@@ -111,18 +111,21 @@ def test_options_are_validated():
 
 def test_alternate_mode_trains_one_part_at_a_time():
     data = systems.harmonic_oscillator(n_times=400)
-    opts = {"support_steps": 1, "refit_steps": 0, "min_epochs": 2, "window": 200}
+    opts = {"mode": "alternate", "support_steps": 1, "refit_steps": 0, "min_epochs": 2,
+            "window": 400}  # one window: one step per epoch
     model = DynamicSINDy(generator="hypersindy", training=opts, verbose=False, seed=3)
     model.fit(data.x, data.t)
     fresh = DynamicSINDy(generator="hypersindy", training={**opts, "support_steps": 0},
                          verbose=False, seed=3)
-    # same seed, no steps: the initial state
-    fresh.fit(data.x, data.t)
+    fresh.fit(data.x, data.t)  # same seed, no steps: the initial state
+    # the hypernetwork first (main module fixed), then the main module
+    assert [h["trained"] for h in model.history_] == [("hyper",), ("main", "codes")]
     gen, gen0 = model.model_.generator, fresh.model_.generator
-    # two epochs: the hypernetwork first (main module fixed), then the main module
     assert not torch.equal(gen.lstm.weight_ih_l0, gen0.lstm.weight_ih_l0)
     assert not torch.equal(gen.encoder[0].weight, gen0.encoder[0].weight)
-    assert 4 <= len(model.history_) <= 6  # 2 epochs x 2 windows (3 on a shifted grid)
+    joint = DynamicSINDy(generator="hypersindy", training={**opts, "mode": "joint"},
+                         verbose=False, seed=3).fit(data.x, data.t)
+    assert [h["trained"] for h in joint.history_] == [("main", "hyper", "codes")] * 2
 
 
 def test_online_mode_records_the_track_window_by_window():
