@@ -110,7 +110,7 @@ class DynamicSINDy:
         -------
         self
         """
-        sequential = getattr(generator_class(self.generator), "sequential", False)
+        sequential = generator_class(self.generator).sequential
         options = make_training_options(
             self.training, SequentialTrainingOptions if sequential else TrainingOptions,
             self.generator)
@@ -160,15 +160,14 @@ class DynamicSINDy:
         with _seeded(self.seed, dev):  # repeatable, and the caller's RNG state is untouched
             gen = build_generator(self.generator, inputs.shape[1], support.size,
                                   self.generator_options)
-            if sequential:
-                gen.allocate(theta.shape[1])
             support_t = torch.as_tensor(support, device=dev)
             if sequential:
+                gen.allocate(theta.shape[1])
                 constants = windowed_constants(theta_n, xdot_n, support_t, options.window)
+                model_cls, fit_fn = SequentialCoefficientModel, train_sequential
             else:
                 constants = least_squares_constants(theta_n, xdot_n, support_t)
-            model_cls, fit_fn = ((SequentialCoefficientModel, train_sequential) if sequential
-                                 else (CoefficientModel, train))
+                model_cls, fit_fn = CoefficientModel, train
             model = model_cls(gen, constants, support_t,
                               torch.as_tensor(varying, dtype=torch.float32)).to(dev)
             self.history_ = fit_fn(model, theta_n, xdot_n, weights_t, inputs,
