@@ -33,7 +33,9 @@ class DynamicSINDy:
 
     Learns Xi(t) such that ``Theta(x(t)) Xi(t) ~ xdot(t)`` for any pysindy feature
     library, in two phases: a sparsity phase that prunes terms, then a refit on the
-    fixed support with stronger smoothing. Coefficients are reported in physical units.
+    fixed support with stronger smoothing. Between the two, pruned terms that the data
+    still need (a least-squares check on the residual) are restored as constants.
+    Coefficients are reported in physical units.
 
     Parameters
     ----------
@@ -64,6 +66,15 @@ class DynamicSINDy:
         Show a progress bar during training.
     seed : int
         Seeds all randomness; CPU runs with the same seed are repeatable.
+
+    Attributes
+    ----------
+    support_, time_varying_ : ndarray of bool, shape (n_states, n_features)
+        Terms kept, and those of them that vary in time.
+    restored_terms_ : list of (state, feature)
+        Terms pruned in the sparsity phase and restored by the least-squares check.
+    history_ : list of dict
+        Loss terms at every optimiser step.
 
     Examples
     --------
@@ -182,8 +193,9 @@ class DynamicSINDy:
         self.x_ = trajs
         self.x_dot_ = xdots
         self.support_ = model.support.cpu().numpy().copy()
-        self.time_varying_ = varying & self.support_
+        self.time_varying_ = model.time_varying.cpu().numpy().astype(bool) & self.support_
         self.n_parameters_ = sum(p.numel() for p in gen.parameters())
+        self.restored_terms_ = [(names[i], feature_list[j]) for i, j in model.restored]
         self.model_ = model  # last: a fit that fails midway leaves the estimator unfitted
         return self
 

@@ -20,7 +20,12 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
-from ._training import CoefficientModel, check_nonnegative_fields, least_squares_constants
+from ._training import (
+    CoefficientModel,
+    check_nonnegative_fields,
+    least_squares_constants,
+    restore_terms,
+)
 from .generators.hypersindy import (
     chunk_centres,
     detach_state,
@@ -189,6 +194,24 @@ class SequentialCoefficientModel(CoefficientModel):
             kl = kl + kl_w
         return torch.cat(parts, dim=1), kl
 
+    @torch.no_grad()
+    def mean_blocks(self, inputs, block: int = 100_000):
+        """Yield (start, stop, Xi): mean per-step coefficients, ``block`` steps at a time."""
+        chunk, n_times = self.generator.chunk, inputs.shape[-1]
+        xi, _ = self.chunk_series(inputs, 0, self.generator.window_len)
+        values = xi.flatten(2)
+        centres = chunk_centres(0, n_times, chunk, values.dtype, values.device)
+        for lo in range(0, n_times, block):
+            hi = min(lo + block, n_times)
+            steps = torch.arange(lo, hi, dtype=values.dtype, device=values.device)
+            yield lo, hi, interpolate_at(values, centres, steps)[0].reshape(hi - lo,
+                                                                            *xi.shape[2:])
+
+    @torch.no_grad()
+    def restore_constant(self, i: int, j: int) -> None:
+        super().restore_constant(i, j)
+        self.log_alpha[i, j] = _LOG_ALPHA0  # its gate reopens
+
     def forward(self, inputs, n_samples: int):
         """Per-step coefficients (S, T, n, F) and KL, as :class:`CoefficientModel`."""
         chunk, window = self.generator.chunk, self.generator.window_len
@@ -301,6 +324,8 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
                     model.time_varying.dtype)
             model.log_alpha.requires_grad_(False)
             model.log_alpha_var.requires_grad_(False)
+            model.restored = restore_terms(model, theta, xdot, weights, inputs,
+                                           options.threshold, free_rows)
             if options.mode == "online":
                 history += _online_pass(model, theta, xdot, weights, inputs, noise_var, starts,
                                         window, options, bayes, bar)

@@ -123,6 +123,20 @@ class CoefficientModel(nn.Module):
         self.constants = nn.Parameter(constants.clone())
         self.register_buffer("support", support.clone())
         self.register_buffer("time_varying", time_varying.clone())
+        self.restored = []  # (equation, term) pairs returned by restore_terms
+
+    @torch.no_grad()
+    def mean_blocks(self, inputs):
+        """Yield (start, stop, Xi) with Xi (stop - start, n, F): the mean coefficients
+        over the whole series, block by block."""
+        xi, _ = self(inputs, 0)
+        yield 0, xi.shape[1], xi[0]
+
+    @torch.no_grad()
+    def restore_constant(self, i: int, j: int) -> None:
+        """Put term ``j`` of equation ``i`` back in the support, as a constant."""
+        self.support[i, j] = True
+        self.time_varying[i, j] = 0.0
 
     def forward(self, inputs, n_samples: int):
         series, kl = self.generator.sample(inputs, n_samples)
@@ -190,6 +204,8 @@ def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
     bar = tqdm(total=total, disable=not verbose, desc="dynamic SINDy", leave=False)
     for phase, steps in ((1, options.support_steps), (2, options.refit_steps)):
         if phase == 2:
+            model.restored = restore_terms(model, theta, xdot, weights, inputs,
+                                           options.threshold, free_rows)
             opt = torch.optim.Adam(params, lr=options.learning_rate / 3)
         lr0 = opt.param_groups[0]["lr"]
         for step in range(steps):
@@ -238,3 +254,66 @@ def _prune(model, inputs, level, free_rows):
     drop = (size < level) & model.support & free_rows[:, None]
     if drop.any():
         model.support &= ~drop
+
+
+@torch.no_grad()
+def restore_terms(model, theta, xdot, weights, inputs, threshold, free_rows,
+                  min_gain=0.25):
+    """Forward step after the support phase: return pruned terms that the data need.
+
+    The sparsity penalty trades a term's size against the misfit its removal causes;
+    when the term is nearly collinear with others (Lorenz's ``-y`` against ``rho x``)
+    that misfit is small in absolute terms and a real term can be dropped. Here each
+    pruned free term is offered back, equation by equation, greedily: a weighted least
+    squares fit of the residual on the active terms plus the candidate (constant
+    corrections) must give the candidate a normalised size >= ``threshold`` and cut the
+    misfit left after the active terms' own corrections by at least ``min_gain`` (a
+    share, so the test does not depend on units or noise level). Restored terms are
+    constants. Accumulates normal equations block by block (memory independent of T).
+    Returns the restored (equation, term) pairs.
+    """
+    n_states, n_features = model.support.shape
+    gram = torch.zeros(n_states, n_features, n_features, dtype=torch.float64)
+    cross = torch.zeros(n_states, n_features, dtype=torch.float64)
+    misfit = torch.zeros(n_states, dtype=torch.float64)
+    for lo, hi, xi in model.mean_blocks(inputs):
+        th = theta[:, lo:hi].double()
+        w = weights[:, lo:hi].double()
+        r = xdot[:, lo:hi].double() - torch.einsum("btf,tnf->btn", th, xi.double())
+        gram += torch.einsum("btf,btn,btg->nfg", th, w, th)
+        cross += torch.einsum("btf,btn->nf", th, w * r)
+        misfit += (w * r**2).sum(dim=(0, 1))
+    restored = []
+    for i in range(n_states):
+        if not bool(free_rows[i]):
+            continue
+        while True:
+            active = torch.nonzero(model.support[i]).flatten().tolist()
+            base = _explained(gram[i], cross[i], active)[0]
+            left = float(misfit[i]) - base
+            best = None
+            for j in torch.nonzero(~model.support[i]).flatten().tolist():
+                gain, coef = _explained(gram[i], cross[i], active + [j])
+                gain -= base
+                if abs(float(coef[-1])) >= threshold and gain >= min_gain * left and (
+                        best is None or gain > best[0]):
+                    best = (gain, j, coef)
+            if best is None:
+                break
+            _, j, coef = best
+            model.restore_constant(i, j)
+            model.constants[i, active + [j]] += coef.to(model.constants.dtype)
+            misfit[i] -= best[0] + base  # the corrections are now part of the model
+            cross[i] -= gram[i][:, active + [j]] @ coef
+            restored.append((i, j))
+    return restored
+
+
+def _explained(gram, cross, cols):
+    """Weighted sum of squares explained by a least-squares fit on ``cols``, and the fit."""
+    if not cols:
+        return 0.0, gram.new_zeros(0)
+    g = gram[cols][:, cols]
+    g = g + 1e-10 * torch.trace(g) * torch.eye(len(cols), dtype=g.dtype)
+    coef = torch.linalg.solve(g, cross[cols])
+    return float(cross[cols] @ coef), coef
