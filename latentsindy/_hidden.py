@@ -109,12 +109,16 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     index = [(first.state_names.index(s), first.feature_names.index(f)) for s, f in hidden_pairs]
     hidden = [np.stack([c.mean[:, i, j] for i, j in index], axis=1) for c in coefs]
     diff = AdaptiveSavitzkyGolay()
-    hidden_dot, smooth_obs = [], []
+    hidden_dot, smooth_obs, spans = [], [], []
     for h, x, tk, m in zip(hidden, trajs, times, fits, strict=True):
         hidden_dot.append(diff(h, tk))
-        smooth_obs.append(_smoothed(m, x, tk))
+        smooth, span = _smoothed(m, x, tk)
+        smooth_obs.append(smooth)
+        spans.append(span)
     sindy, table = fit_closure(hidden, hidden_dot, smooth_obs, times, closure_library,
-                               hidden_names, names)
+                               hidden_names, names,
+                               weights=[_information(m, index) for m in fits],
+                               span=max(spans))
     closure_feats = feature_expressions(sindy.feature_library, sindy.get_feature_names(),
                                         list(hidden_names) + list(names))
     for k, h in enumerate(hidden_names):
@@ -132,13 +136,29 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     )
 
 
+def _information(model, index):
+    """How well the data determine each hidden state at each sample, (n_times, n_hidden).
+
+    A hidden state h enters its equation as ``h * Theta_j(x)``; the derivative data
+    carry information about h in proportion to ``Theta_j(x)^2`` (Lotka-Volterra: none
+    where the prey x is near zero). Normalised to mean one per hidden state.
+    """
+    theta = np.asarray(model.library_.transform(model.x_)[0])
+    info = np.stack([theta[:, j] ** 2 for _, j in index], axis=1)
+    return info / np.maximum(info.mean(axis=0), 1e-300)
+
+
 def _smoothed(model, x, t):
     """The observed states as the stage-one differentiator smoothed them (less noise in
-    the closure library), or the raw data when the method keeps no smoothed copy."""
+    the closure library), or the raw data when the method keeps no smoothed copy; and
+    the differentiator's resolution in samples (its widest smoothing window, or 1)."""
     method = copy.deepcopy(model.differentiation_method) or AdaptiveSavitzkyGolay()
     method(x, t)
     smooth = getattr(method, "smoothed_x_", None)
-    return np.asarray(smooth) if smooth is not None and np.shape(smooth) == x.shape else x
+    span = int(max(getattr(method, "windows_", None) or [1]))
+    if smooth is None or np.shape(smooth) != x.shape:
+        return x, span
+    return np.asarray(smooth), span
 
 
 def _check_hidden_request(hidden_terms, hidden_names, states, features):
