@@ -14,7 +14,7 @@ N_THRESHOLDS = 30
 
 
 def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, observed_names,
-                weights=None, span=1):
+                span=1):
     """Fit ``d hidden/dt = f(hidden, observed)`` with pysindy's STLSQ.
 
     STLSQ (normalised columns, unbiased) is run along a geometric grid of thresholds;
@@ -24,14 +24,11 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
     needs tuning, and terms that only fit noise do not beat it.
 
     Candidate supports come from STLSQ on the pointwise derivatives and are scored on
-    them; the final coefficients (weighted least squares on the chosen support) use
-    the integral form: ``h(t + span) - h(t)`` against the integral of the library over the same
-    interval (trapezoid), on every interval of ``span`` samples. That needs no
-    derivative of h, and averages out errors of h on scales shorter than ``span`` (the
+    them; the final coefficients (least squares on the chosen support) use the
+    integral form: ``h(t + span) - h(t)`` against the integral of the library over the
+    same interval (trapezoid), on every interval of ``span`` samples. That needs no
+    derivative of h and averages out errors of h on scales shorter than ``span`` (the
     stage-one data resolve nothing finer than their derivative's smoothing window).
-    ``weights`` (one (n_times, n_hidden) array per trajectory, optional) say how well
-    the data determine each hidden state at each sample; they are integrated over each
-    interval and weight its residual.
 
     Returns
     -------
@@ -65,7 +62,7 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
     ok = [c for c in candidates if c[2] <= limit]
     chosen = min(ok, key=lambda c: (c[1], c[2]))
     model = chosen[4]
-    _refit_integral(model, hidden, observed, times, weights, span)
+    _refit_integral(model, hidden, observed, times, span)
     table = [(c[0], c[1], c[2]) for c in candidates]
     return model, table
 
@@ -89,24 +86,20 @@ def _normalised_max(model, hidden, observed):
     return float(np.max(np.abs(model.coefficients() * norms[None, :]))) or 1.0
 
 
-def _refit_integral(model, hidden, observed, times, weights, span):
-    """Weighted least squares of the increments of h over ``span`` samples on the
-    integrals of the library, on the model's support (coefficients set in place)."""
-    if weights is None:
-        weights = [np.ones_like(h) for h in hidden]
+def _refit_integral(model, hidden, observed, times, span):
+    """Least squares of the increments of h over ``span`` samples on the integrals of
+    the library, on the model's support (coefficients set in place)."""
     span = max(1, min(int(span), min(len(h) for h in hidden) - 1))
     thetas = model.feature_library.transform(
         [np.hstack([h, u]) for h, u in zip(hidden, observed, strict=True)])
     theta = np.vstack([_integrals(np.asarray(a), tk, span)
                        for a, tk in zip(thetas, times, strict=True)])
     target = np.vstack([h[span:] - h[:-span] for h in hidden])
-    w = np.vstack([_integrals(np.asarray(a, dtype=float), tk, span)
-                   for a, tk in zip(weights, times, strict=True)])
     coef = model.coefficients()
     for k in range(target.shape[1]):
         cols = np.flatnonzero(coef[k])
         if len(cols):
-            coef[k, cols] = _weighted_lstsq(theta[:, cols], target[:, k], w[:, k])
+            coef[k, cols] = np.linalg.lstsq(theta[:, cols], target[:, k], rcond=None)[0]
     model.optimizer.coef_ = coef
 
 
@@ -122,11 +115,6 @@ def _integrals(values, times, span):
     cum = np.concatenate([np.zeros((1, values.shape[1])),
                           np.cumsum((values[1:] + values[:-1]) / 2 * dt, axis=0)])
     return cum[span:] - cum[:-span]
-
-
-def _weighted_lstsq(a, b, w):
-    root = np.sqrt(w)
-    return np.linalg.lstsq(a * root[:, None], b * root, rcond=None)[0]
 
 
 def _cv_error(theta, target, support):

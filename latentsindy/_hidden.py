@@ -116,9 +116,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         smooth_obs.append(smooth)
         spans.append(span)
     sindy, table = fit_closure(hidden, hidden_dot, smooth_obs, times, closure_library,
-                               hidden_names, names,
-                               weights=[_information(m, index) for m in fits],
-                               span=max(spans))
+                               hidden_names, names, span=max(spans))
     closure_feats = feature_expressions(sindy.feature_library, sindy.get_feature_names(),
                                         list(hidden_names) + list(names))
     for k, h in enumerate(hidden_names):
@@ -134,18 +132,6 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         hidden_terms=tuple(hidden_pairs), rhs=rhs, sindy=sindy, coefficients=first,
         closure_candidates=table,
     )
-
-
-def _information(model, index):
-    """How well the data determine each hidden state at each sample, (n_times, n_hidden).
-
-    A hidden state h enters its equation as ``h * Theta_j(x)``; the derivative data
-    carry information about h in proportion to ``Theta_j(x)^2`` (Lotka-Volterra: none
-    where the prey x is near zero). Normalised to mean one per hidden state.
-    """
-    theta = np.asarray(model.library_.transform(model.x_)[0])
-    info = np.stack([theta[:, j] ** 2 for _, j in index], axis=1)
-    return info / np.maximum(info.mean(axis=0), 1e-300)
 
 
 def _smoothed(model, x, t):

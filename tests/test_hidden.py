@@ -40,7 +40,7 @@ def test_lv_hidden_state_and_equation(lv):
 
 def test_lv_with_one_percent_noise():
     """Issue 3 bar at 1% noise: hidden R^2 >= 0.99, hidden-equation coefficients within
-    3%, no extra or missing terms (measured 0.99886 and 0.95%)."""
+    3%, no extra or missing terms (measured 0.99886 and 1.9%)."""
     data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000, noise=0.01)
     result = discover_hidden(data.x[:, :1], ps.PolynomialLibrary(degree=3, include_bias=False),
                              t=data.t, feature_names=["x"], hidden_names=["h"], verbose=False)
@@ -52,16 +52,16 @@ def test_lv_with_one_percent_noise():
 
 def test_closure_integral_refit_is_exact_on_clean_data():
     """The closure's final fit (increments over ``span`` samples against the library's
-    integrals, weighted) is exact on exact data: the predator's equation of noise-free
-    Lotka-Volterra within 1e-4, for any span and weights."""
+    integrals) is exact on exact data: the predator's equation of noise-free
+    Lotka-Volterra within 1e-4, pointwise-like (span 1) or over 45 samples."""
     from latentsindy._closure import fit_closure
 
     data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000)
     y, x = data.x_clean[:, 1:2], data.x_clean[:, :1]
     ydot = data.x_dot[:, 1:2]
-    for span, weights in ((1, None), (45, [x**2 / np.mean(x**2)])):
+    for span in (1, 45):
         model, _ = fit_closure([y], [ydot], [x], [data.t], ps.PolynomialLibrary(degree=2),
-                               ["y"], ["x"], weights=weights, span=span)
+                               ["y"], ["x"], span=span)
         found = dict(zip(model.get_feature_names(), model.coefficients()[0], strict=True))
         assert {k for k, v in found.items() if v != 0} == {"y", "y x"}
         assert found["y"] == pytest.approx(-1.5, rel=1e-4)
