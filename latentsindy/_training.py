@@ -280,7 +280,9 @@ def restore_terms(model, theta, xdot, weights, inputs, threshold, free_rows,
         th = theta[:, lo:hi].double()
         w = weights[:, lo:hi].double()
         r = xdot[:, lo:hi].double() - torch.einsum("btf,tnf->btn", th, xi.double())
-        gram += torch.einsum("btf,btn,btg->nfg", th, w, th)
+        flat = th.reshape(-1, n_features)
+        for i in range(n_states):  # (T, F) products only: no (T, n, F, F) intermediate
+            gram[i] += flat.T @ (flat * w[..., i].reshape(-1, 1))
         cross += torch.einsum("btf,btn->nf", th, w * r)
         misfit += (w * r**2).sum(dim=(0, 1))
     restored = []
