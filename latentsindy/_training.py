@@ -273,9 +273,10 @@ def restore_terms(model, theta, xdot, weights, inputs, threshold, free_rows,
     Returns the restored (equation, term) pairs.
     """
     n_states, n_features = model.support.shape
-    gram = torch.zeros(n_states, n_features, n_features, dtype=torch.float64)
-    cross = torch.zeros(n_states, n_features, dtype=torch.float64)
-    misfit = torch.zeros(n_states, dtype=torch.float64)
+    like = dict(dtype=torch.float64, device=theta.device)
+    gram = torch.zeros(n_states, n_features, n_features, **like)
+    cross = torch.zeros(n_states, n_features, **like)
+    misfit = torch.zeros(n_states, **like)
     for lo, hi, xi in model.mean_blocks(inputs):
         th = theta[:, lo:hi].double()
         w = weights[:, lo:hi].double()
@@ -316,6 +317,6 @@ def _explained(gram, cross, cols):
     if not cols:
         return 0.0, gram.new_zeros(0)
     g = gram[cols][:, cols]
-    g = g + 1e-10 * torch.trace(g) * torch.eye(len(cols), dtype=g.dtype)
+    g = g + 1e-10 * torch.trace(g) * torch.eye(len(cols), dtype=g.dtype, device=g.device)
     coef = torch.linalg.solve(g, cross[cols])
     return float(cross[cols] @ coef), coef
