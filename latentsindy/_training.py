@@ -10,6 +10,8 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
+from ._selection import restore_terms
+
 _EPS = torch.finfo(torch.float32).eps
 
 
@@ -138,6 +140,12 @@ class CoefficientModel(nn.Module):
         self.support[i, j] = True
         self.time_varying[i, j] = 0.0
 
+    @torch.no_grad()
+    def freeze_constant(self, i: int, j: int, value: float) -> None:
+        """Fit term ``j`` of equation ``i`` as the constant ``value`` from now on."""
+        self.time_varying[i, j] = 0.0
+        self.constants[i, j] = value
+
     def forward(self, inputs, n_samples: int):
         series, kl = self.generator.sample(inputs, n_samples)
         n_states, n_features = self.constants.shape
@@ -254,69 +262,3 @@ def _prune(model, inputs, level, free_rows):
     drop = (size < level) & model.support & free_rows[:, None]
     if drop.any():
         model.support &= ~drop
-
-
-@torch.no_grad()
-def restore_terms(model, theta, xdot, weights, inputs, threshold, free_rows,
-                  min_gain=0.25):
-    """Forward step after the support phase: return pruned terms that the data need.
-
-    The sparsity penalty trades a term's size against the misfit its removal causes;
-    when the term is nearly collinear with others (Lorenz's ``-y`` against ``rho x``)
-    that misfit is small in absolute terms and a real term can be dropped. Here each
-    pruned free term is offered back, equation by equation, greedily: a weighted least
-    squares fit of the residual on the active terms plus the candidate (constant
-    corrections) must give the candidate a normalised size >= ``threshold`` and cut the
-    misfit left after the active terms' own corrections by at least ``min_gain`` (a
-    share, so the test does not depend on units or noise level). Restored terms are
-    constants. Accumulates normal equations block by block (memory independent of T).
-    Returns the restored (equation, term) pairs.
-    """
-    n_states, n_features = model.support.shape
-    like = dict(dtype=torch.float64, device=theta.device)
-    gram = torch.zeros(n_states, n_features, n_features, **like)
-    cross = torch.zeros(n_states, n_features, **like)
-    misfit = torch.zeros(n_states, **like)
-    for lo, hi, xi in model.mean_blocks(inputs):
-        th = theta[:, lo:hi].double()
-        w = weights[:, lo:hi].double()
-        r = xdot[:, lo:hi].double() - torch.einsum("btf,tnf->btn", th, xi.double())
-        flat = th.reshape(-1, n_features)
-        for i in range(n_states):  # (T, F) products only: no (T, n, F, F) intermediate
-            gram[i] += flat.T @ (flat * w[..., i].reshape(-1, 1))
-        cross += torch.einsum("btf,btn->nf", th, w * r)
-        misfit += (w * r**2).sum(dim=(0, 1))
-    restored = []
-    for i in range(n_states):
-        if not bool(free_rows[i]):
-            continue
-        while True:
-            active = torch.nonzero(model.support[i]).flatten().tolist()
-            base = _explained(gram[i], cross[i], active)[0]
-            left = float(misfit[i]) - base
-            best = None
-            for j in torch.nonzero(~model.support[i]).flatten().tolist():
-                gain, coef = _explained(gram[i], cross[i], active + [j])
-                gain -= base
-                if abs(float(coef[-1])) >= threshold and gain >= min_gain * left and (
-                        best is None or gain > best[0]):
-                    best = (gain, j, coef)
-            if best is None:
-                break
-            _, j, coef = best
-            model.restore_constant(i, j)
-            model.constants[i, active + [j]] += coef.to(model.constants.dtype)
-            misfit[i] -= best[0] + base  # the corrections are now part of the model
-            cross[i] -= gram[i][:, active + [j]] @ coef
-            restored.append((i, j))
-    return restored
-
-
-def _explained(gram, cross, cols):
-    """Weighted sum of squares explained by a least-squares fit on ``cols``, and the fit."""
-    if not cols:
-        return 0.0, gram.new_zeros(0)
-    g = gram[cols][:, cols]
-    g = g + 1e-10 * torch.trace(g) * torch.eye(len(cols), dtype=g.dtype, device=g.device)
-    coef = torch.linalg.solve(g, cross[cols])
-    return float(cross[cols] @ coef), coef

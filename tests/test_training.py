@@ -1,10 +1,12 @@
-"""The training step that returns pruned terms the data need (a forward step)."""
+"""The discrete steps between the phases: pruned terms the data need come back (a
+forward step); variation the data do not need is frozen (a backward step)."""
 
 import numpy as np
 import torch
 from torch import nn
 
-from latentsindy._training import CoefficientModel, restore_terms
+from latentsindy._selection import freeze_constant_terms, restore_terms
+from latentsindy._training import CoefficientModel
 
 
 class _Flat(nn.Module):
@@ -68,3 +70,61 @@ def test_small_term_and_fixed_rows_are_not_restored():
     model = _model(theta, xdot, [True, False, False])
     assert restore_terms(model, theta, xdot, weights, inputs, 0.05, torch.tensor([False])) == []
     assert model.support.tolist() == [[True, False, False]]
+
+
+class _Given(nn.Module):
+    """A generator that returns a fixed coefficient series (1, T, n_out)."""
+
+    def __init__(self, series):
+        super().__init__()
+        self.series = series
+
+    def sample(self, inputs, n_samples):
+        return self.series.expand(max(n_samples, 1), -1, -1), torch.zeros(())
+
+
+def _varying_problem():
+    """xdot = (2 + 0.5 sin 0.3t) a - 0.5 b; the model's b also varies (0.1 cos 2.1t),
+    a variation the data do not contain."""
+    t = np.linspace(0, 20, 2000)
+    theta, _, _, inputs = _problem()
+    varying = np.stack([0.5 * np.sin(0.3 * t), 0.1 * np.cos(2.1 * t), 0 * t], axis=1)
+    xdot = theta[0].numpy() @ np.array([2.0, -0.5, 0.0]) + theta[0, :, 0].numpy() * varying[:, 0]
+    model = CoefficientModel(_Given(torch.as_tensor(varying[None], dtype=torch.float32)),
+                             torch.tensor([[2.0, -0.5, 0.0]]), torch.tensor([[True, True, False]]),
+                             torch.ones(1, 3))
+    return model, theta, torch.as_tensor(xdot[None, :, None], dtype=torch.float32), inputs, varying
+
+
+def test_unneeded_variation_is_frozen_at_its_mean():
+    """b's variation explains nothing beyond constants: b becomes the constant mean of its
+    coefficient (1e-6); a's real variation stays; the inactive c is not touched."""
+    model, theta, xdot, inputs, varying = _varying_problem()
+    weights = torch.ones_like(xdot)
+    frozen = freeze_constant_terms(model, theta, xdot, weights, inputs, 1e-3,
+                                   torch.tensor([True]))
+    assert frozen == [(0, 1)]
+    assert model.time_varying.tolist() == [[1.0, 0.0, 1.0]]
+    assert abs(float(model.constants[0, 1].detach()) - (-0.5 + varying[:, 1].mean())) < 1e-6
+
+
+def test_variation_is_kept_when_it_pays_and_on_fixed_rows():
+    """A cost above what a's variation explains beyond constants (its least-squares
+    share of the mean squared derivative) freezes it too; rows with a user-fixed support
+    are left alone whatever the cost."""
+    model, theta, xdot, inputs, _ = _varying_problem()
+    weights = torch.ones_like(xdot)
+    columns = torch.cat([theta[0], theta[0, :, :1] * model.generator.series[0, :, :1]], dim=1)
+    fit = torch.linalg.lstsq(theta[0].double(), xdot[0].double()).solution
+    misfit = float(torch.mean((theta[0].double() @ fit - xdot[0]) ** 2))
+    assert misfit > 1e-3  # the variation matters: constants alone leave this misfit
+    assert torch.linalg.matrix_rank(columns) == 4
+    assert freeze_constant_terms(model, theta, xdot, weights, inputs, 0.5 * misfit,
+                                 torch.tensor([True])) == [(0, 1)]
+    model, theta, xdot, inputs, _ = _varying_problem()
+    assert freeze_constant_terms(model, theta, xdot, weights, inputs, 2.0 * misfit,
+                                 torch.tensor([True])) == [(0, 1), (0, 0)]
+    model, theta, xdot, inputs, _ = _varying_problem()
+    assert freeze_constant_terms(model, theta, xdot, weights, inputs, 1e6,
+                                 torch.tensor([False])) == []
+    assert model.time_varying.tolist() == [[1.0, 1.0, 1.0]]
