@@ -90,8 +90,10 @@ class SequentialTrainingOptions:
     smoothness, refit_smoothness : float
         Weights of the normalised total variation, as in :class:`TrainingOptions`; in
         the refit, ``refit_smoothness`` acts on terms that vary together with another
-        term of their equation (only a smoothness penalty keeps such terms from
-        trading off with state-dependent wiggles).
+        term of their equation: only a smoothness penalty keeps such terms from
+        trading off with state-dependent wiggles (Lorenz's sigma(t) in ``-sigma x +
+        sigma y``, T=10,000, 1% noise, three seeds: R^2 0.97, 0.94, 0.76 with 2,
+        0.997, 0.996, 0.996 with 10).
     lone_smoothness : float
         Refit weight of the total variation on a term that is its equation's only
         varying term: identified pointwise by the data, it needs smoothing only against
@@ -122,7 +124,7 @@ class SequentialTrainingOptions:
     kl_start: float = 0.01
     kl_weight: float = 1.0
     smoothness: float = 0.3
-    refit_smoothness: float = 2.0
+    refit_smoothness: float = 10.0
     lone_smoothness: float = 0.5
     grad_clip: float = 1.0
     online_steps: int = 20
