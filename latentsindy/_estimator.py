@@ -34,7 +34,8 @@ class DynamicSINDy:
     Learns Xi(t) such that ``Theta(x(t)) Xi(t) ~ xdot(t)`` for any pysindy feature
     library, in two phases: a sparsity phase that prunes terms, then a refit on the
     fixed support with stronger smoothing. Between the two, pruned terms that the data
-    still need (a least-squares check on the residual) are restored as constants.
+    still need (least-squares checks on the residual, and on the varying coefficients
+    for terms they absorbed) are restored as constants.
     Coefficients are reported in physical units.
 
     Parameters

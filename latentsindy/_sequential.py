@@ -20,7 +20,7 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
-from ._selection import freeze_constant_terms, restore_terms
+from ._selection import freeze_constant_terms, restore_absorbed_terms, restore_terms
 from ._training import CoefficientModel, check_nonnegative_fields, least_squares_constants
 from .generators.hypersindy import (
     chunk_centres,
@@ -364,6 +364,8 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
             freeze_constant_terms(model, theta, xdot, weights, inputs, var_cost, free_rows)
             model.restored = restore_terms(model, theta, xdot, weights, inputs,
                                            options.threshold, free_rows)
+            model.restored += restore_absorbed_terms(model, theta, xdot, weights, inputs,
+                                                     options.threshold, free_rows)
             if options.mode == "online":
                 history += _online_pass(model, theta, xdot, weights, inputs, noise_var, starts,
                                         window, options, bayes, bar)

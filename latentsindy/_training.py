@@ -10,7 +10,7 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
-from ._selection import restore_terms
+from ._selection import restore_absorbed_terms, restore_terms
 
 _EPS = torch.finfo(torch.float32).eps
 
@@ -214,6 +214,8 @@ def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
         if phase == 2:
             model.restored = restore_terms(model, theta, xdot, weights, inputs,
                                            options.threshold, free_rows)
+            model.restored += restore_absorbed_terms(model, theta, xdot, weights, inputs,
+                                                     options.threshold, free_rows)
             opt = torch.optim.Adam(params, lr=options.learning_rate / 3)
         lr0 = opt.param_groups[0]["lr"]
         for step in range(steps):

@@ -5,7 +5,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from latentsindy._selection import freeze_constant_terms, restore_terms
+from latentsindy._selection import (
+    freeze_constant_terms,
+    restore_absorbed_terms,
+    restore_terms,
+)
 from latentsindy._training import CoefficientModel
 
 
@@ -128,3 +132,50 @@ def test_variation_is_kept_when_it_pays_and_on_fixed_rows():
     assert freeze_constant_terms(model, theta, xdot, weights, inputs, 1e6,
                                  torch.tensor([False])) == []
     assert model.time_varying.tolist() == [[1.0, 1.0, 1.0]]
+
+
+def _absorbing_problem(beta):
+    """Columns a > 0 and b; the model has only a, with the varying coefficient
+    c(t) = 2 + beta b / a + 0.1 sin(0.2 t): b's role absorbed into a's variation."""
+    t = np.linspace(0, 20, 2000)
+    a, b = 1.0 + 0.5 * np.sin(t), np.cos(1.3 * t)
+    theta = torch.as_tensor(np.stack([a, b], axis=1)[None], dtype=torch.float32)
+    varying = np.stack([beta * b / a + 0.1 * np.sin(0.2 * t), 0 * t], axis=1)
+    xdot = (2.0 + varying[:, 0]) * a
+    model = CoefficientModel(_Given(torch.as_tensor(varying[None], dtype=torch.float32)),
+                             torch.tensor([[2.0, 0.0]]), torch.tensor([[True, False]]),
+                             torch.tensor([[1.0, 0.0]]))
+    return (model, theta, torch.as_tensor(xdot[None, :, None], dtype=torch.float32),
+            torch.zeros(1, 2, 2000))
+
+
+def test_term_absorbed_into_a_varying_coefficient_is_restored():
+    """b's role hidden in a's varying coefficient comes back as a constant with the
+    least-squares coefficient of the contribution on [a, b] (1e-4; within 5% of the
+    true -0.5: the drift of c is not orthogonal to b); a keeps varying."""
+    model, theta, xdot, inputs = _absorbing_problem(-0.5)
+    weights = torch.ones_like(xdot)
+    restored = restore_absorbed_terms(model, theta, xdot, weights, inputs, 0.05,
+                                      torch.tensor([True]))
+    assert restored == [(0, 1)]
+    assert model.support.tolist() == [[True, True]]
+    assert model.time_varying.tolist() == [[1.0, 0.0]]
+    contribution = theta[0, :, 0] * (2.0 + model.generator.series[0, :, 0])
+    expected = np.linalg.lstsq(theta[0].double().numpy(), contribution.double().numpy(),
+                               rcond=None)[0][1]
+    found = float(model.constants[0, 1].detach())
+    assert abs(found / expected - 1) < 1e-4
+    assert abs(found / -0.5 - 1) < 0.05
+
+
+def test_variation_unrelated_to_pruned_terms_is_left_alone():
+    """A varying coefficient that is not a pruned column in disguise (a hidden state)
+    restores nothing; neither does a fixed row."""
+    model, theta, xdot, inputs = _absorbing_problem(0.0)
+    weights = torch.ones_like(xdot)
+    assert restore_absorbed_terms(model, theta, xdot, weights, inputs, 0.05,
+                                  torch.tensor([True])) == []
+    model, theta, xdot, inputs = _absorbing_problem(-0.5)
+    assert restore_absorbed_terms(model, theta, xdot, weights, inputs, 0.05,
+                                  torch.tensor([False])) == []
+    assert model.support.tolist() == [[True, False]]
