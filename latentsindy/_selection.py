@@ -1,15 +1,17 @@
 """Discrete term decisions between the support phase and the refit.
 
 The relaxed penalties of the support phase (log-L1 on sizes, relaxed-L0 gates on time
-variation) leave two kinds of wrong decisions that a least-squares check on the fitted
-coefficients corrects exactly:
+variation) leave three kinds of wrong decisions that least-squares checks on the fitted
+coefficients correct:
 
 * :func:`freeze_constant_terms`: a term whose time variation explains no more than its
   cost is fitted as a constant (backward elimination of variation);
 * :func:`restore_terms`: a pruned term that the residual still needs comes back as a
-  constant (forward selection of terms).
+  constant (forward selection of terms);
+* :func:`restore_absorbed_terms`: a pruned term whose role a varying coefficient has
+  absorbed comes back as a constant.
 
-Both accumulate normal equations block by block, so memory does not depend on the
+All accumulate normal equations block by block, so memory does not depend on the
 series length.
 """
 
