@@ -18,6 +18,22 @@ def transition_time(t, series, low, high):
     return float(t[np.argmax(above)])
 
 
+LORENZ_TERMS = [("x", "x"), ("x", "y"), ("y", "x"), ("y", "y"), ("y", "x z"), ("z", "z"),
+                ("z", "x y")]
+LORENZ_CONSTANTS = {("y", "x"): 28.0, ("y", "y"): -1.0, ("y", "x z"): -1.0, ("z", "x y"): 1.0,
+                    ("z", "z"): -8.0 / 3.0}
+
+
+def check_lorenz(coefs, data):
+    """Lorenz with a time-varying sigma: exact support, R^2 of sigma(t) >= 0.9 in both
+    terms where it appears, the other coefficients within 5%."""
+    assert coefs.active_terms() == LORENZ_TERMS
+    assert r2(coefs.term("x", "y"), data.parameters["sigma"]) >= 0.9
+    assert r2(-coefs.term("x", "x"), data.parameters["sigma"]) >= 0.9
+    for (state, feature), value in LORENZ_CONSTANTS.items():
+        assert abs(coefs.term(state, feature).mean() / value - 1) < 0.05, (state, feature)
+
+
 @pytest.fixture
 def fast():
     """Training options for tests that check plumbing rather than accuracy."""
