@@ -139,10 +139,8 @@ def restore_absorbed_terms(model, theta, xdot, weights, inputs, threshold, free_
 def _unexplained(gram, target, cols):
     """Weighted sum of squares of column ``target`` left after a least-squares fit on
     ``cols`` (indices into the same normal equations), and the fit."""
-    g = gram[cols][:, cols]
-    g = g + 1e-12 * torch.trace(g) * torch.eye(len(cols), dtype=g.dtype, device=g.device)
-    fit = torch.linalg.solve(g, gram[cols, target])
-    return float(gram[target, target] - gram[cols, target] @ fit), fit
+    explained, fit = _explained(gram, gram[:, target], cols)
+    return float(gram[target, target]) - explained, fit
 
 
 @torch.no_grad()
