@@ -1,8 +1,9 @@
 """Tutorial: find the predator from prey counts alone (Lotka-Volterra).
 
 Only the prey x is observed. Dynamic SINDy writes xdot = x * h(t); the hidden state
-h = alpha - beta * y is an affine image of the unmeasured predator y, and pysindy
-closes the system: hdot = gamma*alpha - gamma*h - delta*alpha*x + delta*x*h.
+h = alpha - beta * y is an affine image of the unmeasured predator y. Stage two closes
+the system (hdot = gamma*alpha - gamma*h - delta*alpha*x + delta*x*h), refines it by
+integrating it against the prey counts, and checks the alternatives it considered.
 
 Run:  python examples/lotka_volterra.py   (figure in examples/output/)
 """
@@ -14,22 +15,21 @@ from pathlib import Path
 
 import numpy as np
 import pysindy as ps
+import sympy as sp
 
 from latentsindy import discover_hidden, systems
 
 ALPHA, BETA, GAMMA, DELTA = 1.0, 0.1, 1.5, 0.075
+X, H = sp.symbols("x h", real=True)
 # the hidden equation after the change of variables h = alpha - beta * y
-TRUE_HIDDEN = {"1": GAMMA * ALPHA, "h": -GAMMA, "x": -DELTA * ALPHA, "h x": DELTA}
+TRUE_HIDDEN = {sp.Integer(1): GAMMA * ALPHA, H: -GAMMA, X: -DELTA * ALPHA, H * X: DELTA}
 
 
-def hidden_equation_errors(result) -> tuple[dict, list, list]:
-    """Relative error of each true term of dh/dt, plus extra and missing terms."""
-    names = result.sindy.get_feature_names()
-    row = result.sindy.coefficients()[0]
-    found = {n: c for n, c in zip(names, row, strict=True) if c != 0}
-    errors = {n: abs(found[n] / v - 1) for n, v in TRUE_HIDDEN.items() if n in found}
-    extra = sorted(set(found) - set(TRUE_HIDDEN))
-    missing = sorted(set(TRUE_HIDDEN) - set(found))
+def equation_errors(found: dict, truth: dict) -> tuple[dict, list, list]:
+    """Relative error of each true term, and the extra and missing terms."""
+    errors = {str(k): abs(found[k] / v - 1) for k, v in truth.items() if k in found}
+    extra = sorted(str(k) for k in set(found) - set(truth))
+    missing = sorted(str(k) for k in set(truth) - set(found))
     return errors, extra, missing
 
 
@@ -44,10 +44,11 @@ def main(noise_levels=(0.0, 0.01), n_times=2000, training=None, output="examples
             feature_names=["x"], hidden_names=["h"], training=training, verbose=verbose,
             seed=seed)
         r2 = result.compare_hidden(data.x_clean[:, 1]).r2[0]
-        errors, extra, missing = hidden_equation_errors(result)
+        found = result.equation("h") if "h" in result.state_names else {}
+        errors, extra, missing = equation_errors(found, TRUE_HIDDEN)
         sim = result.simulate()
-        nrmse = (np.sqrt(np.mean((sim.x[:, 0] - data.x_clean[:, 0]) ** 2))
-                 / np.std(data.x_clean[:, 0])) if sim.success else np.inf
+        nrmse = (np.sqrt(np.mean((sim.x[:, 0] - data.x[:, 0]) ** 2))
+                 / np.std(data.x[:, 0])) if sim.success else np.inf
         results[noise] = {"result": result, "data": data, "r2": r2, "errors": errors,
                           "extra": extra, "missing": missing, "simulation": sim,
                           "nrmse": nrmse}
@@ -58,7 +59,7 @@ def main(noise_levels=(0.0, 0.01), n_times=2000, training=None, output="examples
         print(f"hidden vs true predator: R^2 = {r2:.5f}")
         print("coefficient errors: " + ", ".join(f"{k}: {v:.2%}" for k, v in errors.items())
               + f"; extra {extra or 'none'}; missing {missing or 'none'}")
-        print(f"closed system reproduces x: normalised RMSE {nrmse:.4f} ({sim.status})")
+        print(f"closed system reproduces the prey: normalised RMSE {nrmse:.4f} ({sim.status})")
     if output:
         _figure(results, Path(output) / "lotka_volterra.png")
     return results
@@ -73,14 +74,17 @@ def _figure(results, path):
     fig, axes = plt.subplots(len(results), 2, figsize=(11, 3.2 * len(results)), squeeze=False)
     for row, (noise, r) in zip(axes, results.items(), strict=True):
         res, data = r["result"], r["data"]
-        y_from_h = (ALPHA - res.hidden[:, 0]) / BETA
+        cmp = res.compare_hidden(data.x_clean[:, 1])  # y = (alpha - h) / beta, fitted map
+        y_from_h = res.hidden @ cmp.scale[:, 0] + cmp.offset[0]
+        band = 2 * np.abs(cmp.scale[0, 0]) * res.hidden_std[:, 0]
         row[0].plot(data.t, data.x_clean[:, 1], "k", lw=2, label="true predator y")
-        row[0].plot(data.t, y_from_h, "C1--", label="inferred (alpha - h) / beta")
+        row[0].plot(data.t, y_from_h, "C1--", label="inferred (affine map of h)")
+        row[0].fill_between(data.t, y_from_h - band, y_from_h + band, color="C1", alpha=0.3)
         row[0].set_title(f"noise {noise:.0%}: hidden R^2 = {r['r2']:.4f}")
         row[0].legend(loc="upper right")
         row[1].plot(data.t, data.x[:, 0], ".", ms=2, color="0.6", label="observed prey")
         row[1].plot(r["simulation"].t, r["simulation"].x[:, 0], "C0", label="closed system")
-        row[1].set_title("simulated closed system vs data")
+        row[1].set_title(f"closed system vs data: normalised RMSE {r['nrmse']:.3f}")
         row[1].legend(loc="upper right")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)

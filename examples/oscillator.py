@@ -2,7 +2,7 @@
 
 xdot = A y, ydot = B(t) x with A = -4 and B(t) a logistic sigmoid from 2 to 3. Both x
 and y are observed; B(t) is not. Dynamic SINDy finds that only B varies, turns it into
-a hidden state, and pysindy recovers its law: Bdot = -6 + 5B - B^2 (the paper reports
+a hidden state, and stage two recovers its law: Bdot = -6 + 5B - B^2 (the paper reports
 -5.875 + 4.903B - 0.981B^2).
 
 Run:  python examples/oscillator.py   (figure in examples/output/)
@@ -14,10 +14,12 @@ import argparse
 from pathlib import Path
 
 import pysindy as ps
+import sympy as sp
 
 from latentsindy import discover_hidden, systems
 
-TRUE_HIDDEN = {"1": -6.0, "B": 5.0, "B^2": -1.0}
+B = sp.Symbol("B", real=True)
+TRUE_HIDDEN = {sp.Integer(1): -6.0, B: 5.0, B**2: -1.0}
 
 
 def simulate_data(n_times, noise, seed):
@@ -35,12 +37,10 @@ def main(noise_levels=(0.0, 0.01), n_times=2000, training=None, output="examples
         result = discover_hidden(data.x, ps.PolynomialLibrary(degree=2), t=data.t,
                                  feature_names=["x", "y"], hidden_names=["B"],
                                  training=training, verbose=verbose, seed=seed)
-        names = result.sindy.get_feature_names()
-        found = {n: c for n, c in zip(names, result.sindy.coefficients()[0], strict=True)
-                 if c != 0}
-        errors = {n: abs(found[n] / v - 1) for n, v in TRUE_HIDDEN.items() if n in found}
-        extra = sorted(set(found) - set(TRUE_HIDDEN))
-        missing = sorted(set(TRUE_HIDDEN) - set(found))
+        found = result.equation("B") if "B" in result.state_names else {}
+        errors = {str(k): abs(found[k] / v - 1) for k, v in TRUE_HIDDEN.items() if k in found}
+        extra = sorted(str(k) for k in set(found) - set(TRUE_HIDDEN))
+        missing = sorted(str(k) for k in set(TRUE_HIDDEN) - set(found))
         r2 = result.compare_hidden(data.parameters["B"]).r2[0]
         results[noise] = {"result": result, "data": data, "errors": errors, "extra": extra,
                           "missing": missing, "r2": r2}
@@ -65,7 +65,7 @@ def _figure(results, path):
     for ax, (noise, r) in zip(axes[0], results.items(), strict=True):
         res, data = r["result"], r["data"]
         ax.plot(data.t, data.parameters["B"], "k", lw=2, label="true B(t)")
-        ax.plot(res.times, res.hidden[:, 0], "C1--", label="inferred hidden state")
+        ax.plot(res.times, res.hidden[:, 0], "C1--", label="closed system's B")
         band = 2 * res.hidden_std[:, 0]
         ax.fill_between(res.times, res.hidden[:, 0] - band, res.hidden[:, 0] + band,
                         color="C1", alpha=0.3, label="+-2 std")

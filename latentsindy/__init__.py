@@ -8,9 +8,17 @@ the result types, and :mod:`latentsindy.systems` (test beds with known truth).
 from importlib.metadata import PackageNotFoundError, version
 
 from . import systems
-from ._discovery import HiddenComparison, HiddenDiscovery, load
+from ._discovery import (
+    Alternative,
+    HiddenComparison,
+    HiddenDiscovery,
+    HiddenState,
+    Refinement,
+    Term,
+)
 from ._estimator import DynamicSINDy
 from ._hidden import discover_hidden
+from ._persist import load
 from ._results import CoefficientSeries
 from ._sequential import SequentialTrainingOptions
 from ._simulate import Simulation
@@ -27,6 +35,10 @@ __all__ = [
     "load",
     "HiddenDiscovery",
     "HiddenComparison",
+    "HiddenState",
+    "Term",
+    "Alternative",
+    "Refinement",
     "CoefficientSeries",
     "Simulation",
     "TrainingOptions",

@@ -1,21 +1,46 @@
-"""Equations for the hidden states: pysindy with a threshold chosen by held-out error."""
+"""Equations for the hidden states: pysindy's STLSQ along a threshold path, the
+threshold chosen by held-out error, coefficients refitted in integral form."""
 
 from __future__ import annotations
 
 import copy
-import warnings
+from dataclasses import dataclass
 
 import numpy as np
-import pysindy as ps
 
 N_FOLDS = 5
 TOLERANCE = 0.05  # a sparser model is accepted within max(1 standard error, 5%) of the best
 N_THRESHOLDS = 30
 
 
+@dataclass(frozen=True)
+class ClosureFit:
+    """Sparse equations ``d hidden/dt = coef @ features(hidden, observed)``.
+
+    Attributes
+    ----------
+    coef : ndarray (n_hidden, n_features)
+    feature_names : tuple of str
+        pysindy's names of the closure library's features, in the variables
+        ``hidden_names + observed_names``.
+    library : pysindy feature library (fitted)
+    cv_error : float
+        Held-out error of the chosen support, relative to each target's variance and
+        averaged over the hidden equations.
+    table : list of (threshold, n_terms, cv_error)
+        Every distinct support along the path.
+    """
+
+    coef: np.ndarray
+    feature_names: tuple
+    library: object
+    cv_error: float
+    table: list
+
+
 def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, observed_names,
-                span=1):
-    """Fit ``d hidden/dt = f(hidden, observed)`` with pysindy's STLSQ.
+                span=1) -> ClosureFit:
+    """Fit ``d hidden/dt = f(hidden, observed)`` by STLSQ with a cross-validated threshold.
 
     STLSQ (normalised columns, unbiased) is run along a geometric grid of thresholds;
     every distinct support is scored by cross-validation over contiguous time blocks,
@@ -24,83 +49,157 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
     needs tuning, and terms that only fit noise do not beat it.
 
     Candidate supports come from STLSQ on the pointwise derivatives and are scored on
-    them; the final coefficients (least squares on the chosen support) use the
-    integral form: ``h(t + span) - h(t)`` against the integral of the library over the
-    same interval (trapezoid), on every interval of ``span`` samples. That needs no
-    derivative of h and averages out errors of h on scales shorter than ``span`` (the
-    stage-one data resolve nothing finer than their derivative's smoothing window).
-
-    Returns
-    -------
-    model : ps.SINDy
-        Fitted on the hidden states with the observed states as inputs ``u``; its
-        features are named after ``hidden_names + observed_names``.
-    table : list of (threshold, n_terms, cv_error)
+    them (pointwise rows are nearly independent, so the held-out error is an honest
+    judge of extra terms); the final coefficients (least squares on the chosen
+    support) use the integral form: ``h(t + span) - h(t)`` against the integral of
+    the library over the same interval (trapezoid), on every interval of ``span``
+    samples. That needs no derivative of h and averages out errors of h on scales
+    shorter than ``span`` (the data resolve nothing finer than the differentiator's
+    smoothing window).
     """
     hidden = [np.asarray(h, dtype=float) for h in hidden]
     observed = [np.asarray(u, dtype=float) for u in observed]
-    hidden_dot = [np.asarray(d, dtype=float) for d in hidden_dot]
-    names = list(hidden_names) + list(observed_names)
-    target = np.vstack(hidden_dot)
-    candidates, seen = [], set()
-    top = None
+    states = [np.hstack([h, u]) for h, u in zip(hidden, observed, strict=True)]
+    lib = copy.deepcopy(library)
+    lib.fit(states)
+    names = tuple(lib.get_feature_names(list(hidden_names) + list(observed_names)))
+    thetas = [np.asarray(a, dtype=float) for a in lib.transform(states)]
+    target = np.vstack([np.asarray(d, dtype=float) for d in hidden_dot])
+    candidates = path(np.vstack(thetas), target)
+    best = min(candidates, key=lambda c: c[2])
+    limit = best[2] + max(best[3], TOLERANCE * best[2])
+    chosen = min((c for c in candidates if c[2] <= limit), key=lambda c: (c[1], c[2]))
+    coef = refit_integral(chosen[4] != 0, thetas, hidden, times, span)
+    table = [(c[0], c[1], c[2]) for c in candidates]
+    return ClosureFit(coef, names, lib, chosen[2], table)
+
+
+def fit_rate_closure(base, rate, observed, times, library, names, span) -> ClosureFit:
+    """Closure of a rate state g = d base/dt: ``dg/dt = f(g, base, observed)``, fitted on
+    the base series itself in second-order weak form: ``b(t+s) - 2 b(t) + b(t-s)``
+    against the library integrated with the triangular kernel ``s - |tau|`` (exact for
+    any smooth b), so no second derivative is taken. ``s`` is twice ``span``."""
+    base = [np.asarray(b, dtype=float) for b in base]
+    states = [np.hstack([g, b, u]) for g, b, u in zip(rate, base, observed, strict=True)]
+    lib = copy.deepcopy(library)
+    lib.fit(states)
+    feature_names = tuple(lib.get_feature_names(list(names)))
+    thetas = [np.asarray(a, dtype=float) for a in lib.transform(states)]
+    half = max(1, min(2 * int(span), min(len(b) for b in base) // 8))
+    rows, targets = [], []
+    for th, b, t in zip(thetas, base, times, strict=True):
+        dt = float(np.mean(np.diff(np.asarray(t, dtype=float)))) if np.ndim(t) else float(t)
+        kernel = (half - np.abs(np.arange(-half, half + 1))) * dt * dt
+        rows.append(np.column_stack([np.convolve(col, kernel, mode="valid") for col in th.T]))
+        targets.append(b[2 * half:] - 2 * b[half:-half] + b[:-2 * half])
+    theta, target = np.vstack(rows), np.vstack(targets)
+    candidates = path(theta, target)
+    best = min(candidates, key=lambda c: c[2])
+    limit = best[2] + max(best[3], TOLERANCE * best[2])
+    chosen = min((c for c in candidates if c[2] <= limit), key=lambda c: (c[1], c[2]))
+    return ClosureFit(chosen[4], feature_names, lib, chosen[2],
+                      [(c[0], c[1], c[2]) for c in candidates])
+
+
+def path(theta, target):
+    """Distinct STLSQ supports along a threshold grid (scaled to the largest normalised
+    least-squares coefficient), each with its cross-validated error:
+    (threshold, n_terms, cv_error, standard_error, coef).
+
+    STLSQ as pysindy implements it (normalised columns, a tiny ridge, sequential
+    thresholding, unbiased refit), run on per-fold normal equations so the whole path
+    costs a few small solves.
+    """
+    norms = np.linalg.norm(theta, axis=0)
+    norms[norms == 0] = 1.0
+    folds = _fold_grams(theta / norms, target)
+    gram = sum(f[0] for f in folds)
+    cross = sum(f[1] for f in folds)
+    full = _solve(gram, cross)
+    top = float(np.max(np.abs(full))) or 1.0
+    out, seen = [], set()
     for thr in [0.0, *np.geomspace(1e-4, 1.0, N_THRESHOLDS)]:
-        model = _fit(thr * (top or 1.0), hidden, hidden_dot, observed, times, library, names)
-        coef = model.coefficients()
-        if top is None:  # scale the grid to the largest least-squares coefficient
-            top = _normalised_max(model, hidden, observed)
-        key = tuple(map(tuple, coef != 0))
+        support = np.stack([_stlsq(gram, cross[:, k], thr * top)
+                            for k in range(target.shape[1])])
+        key = support.tobytes()
         if key in seen:
             continue
         seen.add(key)
-        theta = np.vstack([np.asarray(a) for a in model.feature_library.transform(
-            [np.hstack([h, u]) for h, u in zip(hidden, observed, strict=True)])])
-        err, se = _cv_error(theta, target, coef != 0)
-        candidates.append((thr * (top or 1.0), int((coef != 0).sum()), err, se, model))
-    best = min(candidates, key=lambda c: c[2])
-    limit = best[2] + max(best[3], TOLERANCE * best[2])
-    ok = [c for c in candidates if c[2] <= limit]
-    chosen = min(ok, key=lambda c: (c[1], c[2]))
-    model = chosen[4]
-    _refit_integral(model, hidden, observed, times, span)
-    table = [(c[0], c[1], c[2]) for c in candidates]
-    return model, table
+        coef = np.zeros(support.shape)
+        for k in range(target.shape[1]):
+            cols = np.flatnonzero(support[k])
+            coef[k, cols] = _solve(gram[np.ix_(cols, cols)], cross[cols, k]) / norms[cols]
+        err, se = _cv(folds, support)
+        out.append((thr * top, int(support.sum()), err, se, coef))
+    return out
 
 
-def _fit(threshold, hidden, hidden_dot, observed, times, library, names):
-    model = ps.SINDy(
-        optimizer=ps.STLSQ(threshold=threshold, alpha=1e-10, normalize_columns=True,
-                           max_iter=50),
-        feature_library=copy.deepcopy(library),
-    )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # STLSQ warns when a threshold empties a row
-        model.fit(hidden, t=list(times), x_dot=hidden_dot, u=observed, feature_names=names)
-    return model
+def _solve(gram, rhs):
+    if gram.shape[0] == 0:
+        return np.zeros((0,) + np.shape(rhs)[1:])
+    ridge = 1e-10 * max(float(np.trace(gram)), 1e-300)
+    return np.linalg.solve(gram + ridge * np.eye(len(gram)), rhs)
 
 
-def _normalised_max(model, hidden, observed):
-    theta = np.vstack([np.asarray(a) for a in model.feature_library.transform(
-        [np.hstack([h, u]) for h, u in zip(hidden, observed, strict=True)])])
-    norms = np.linalg.norm(theta, axis=0)
-    return float(np.max(np.abs(model.coefficients() * norms[None, :]))) or 1.0
+def _stlsq(gram, cross, threshold, max_iter=50):
+    """Support of sequentially thresholded least squares (normalised columns)."""
+    active = np.ones(len(cross), dtype=bool)
+    for _ in range(max_iter):
+        cols = np.flatnonzero(active)
+        coef = _solve(gram[np.ix_(cols, cols)], cross[cols])
+        small = np.abs(coef) < threshold
+        if not small.any():
+            break
+        active[cols[small]] = False
+        if not active.any():
+            break
+    return active
 
 
-def _refit_integral(model, hidden, observed, times, span):
+def _fold_grams(theta, target):
+    """Per contiguous block: (Theta^T Theta, Theta^T y, y^T y per target, n)."""
+    edges = np.linspace(0, len(target), N_FOLDS + 1).astype(int)
+    out = []
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
+        th, y = theta[a:b], target[a:b]
+        out.append((th.T @ th, th.T @ y, np.sum(y**2, axis=0), np.sum(y, axis=0), b - a))
+    return out
+
+
+def _cv(folds, support):
+    """Held-out error of least squares on ``support`` over the blocks, relative to each
+    target's variance and averaged over targets, and its standard error."""
+    n = sum(f[4] for f in folds)
+    total_sq = sum(f[2] for f in folds)
+    total_sum = sum(f[3] for f in folds)
+    var = np.maximum(total_sq / n - (total_sum / n) ** 2, 1e-300)
+    gram = sum(f[0] for f in folds)
+    cross = sum(f[1] for f in folds)
+    errs = np.zeros(len(folds))
+    m = support.shape[0]
+    for f, (g_f, c_f, yy_f, _, _) in enumerate(folds):
+        for k in range(m):
+            cols = np.flatnonzero(support[k])
+            resid = yy_f[k]
+            if len(cols):
+                c = _solve((gram - g_f)[np.ix_(cols, cols)], (cross - c_f)[cols, k])
+                resid = yy_f[k] - 2 * c @ c_f[cols, k] + c @ g_f[np.ix_(cols, cols)] @ c
+            errs[f] += max(float(resid), 0.0) / (n * var[k] * m)
+    return float(errs.sum()), float(np.std(errs * len(folds), ddof=1) / np.sqrt(len(folds)))
+
+
+def refit_integral(support, thetas, hidden, times, span):
     """Least squares of the increments of h over ``span`` samples on the integrals of
-    the library, on the model's support (coefficients set in place)."""
+    the library, on ``support`` (n_hidden, n_features)."""
     span = max(1, min(int(span), min(len(h) for h in hidden) - 1))
-    thetas = model.feature_library.transform(
-        [np.hstack([h, u]) for h, u in zip(hidden, observed, strict=True)])
-    theta = np.vstack([_integrals(np.asarray(a), tk, span)
-                       for a, tk in zip(thetas, times, strict=True)])
+    theta = np.vstack([_integrals(a, tk, span) for a, tk in zip(thetas, times, strict=True)])
     target = np.vstack([h[span:] - h[:-span] for h in hidden])
-    coef = model.coefficients()
+    coef = np.zeros(support.shape)
     for k in range(target.shape[1]):
-        cols = np.flatnonzero(coef[k])
+        cols = np.flatnonzero(support[k])
         if len(cols):
             coef[k, cols] = np.linalg.lstsq(theta[:, cols], target[:, k], rcond=None)[0]
-    model.optimizer.coef_ = coef
+    return coef
 
 
 def _steps(times, n):
@@ -115,24 +214,3 @@ def _integrals(values, times, span):
     cum = np.concatenate([np.zeros((1, values.shape[1])),
                           np.cumsum((values[1:] + values[:-1]) / 2 * dt, axis=0)])
     return cum[span:] - cum[:-span]
-
-
-def _cv_error(theta, target, support):
-    """Held-out error (relative to each target's variance) of least squares on support,
-    and its standard error across the folds."""
-    n = len(target)
-    edges = np.linspace(0, n, N_FOLDS + 1).astype(int)
-    folds = np.zeros(N_FOLDS)
-    for k in range(target.shape[1]):
-        cols = np.flatnonzero(support[k])
-        scale = n * max(float(np.var(target[:, k])), 1e-300)
-        for f, (a, b) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
-            train = np.r_[0:a, b:n]
-            pred = np.zeros(b - a)
-            if len(cols):
-                coef, *_ = np.linalg.lstsq(theta[np.ix_(train, cols)], target[train, k],
-                                           rcond=None)
-                pred = theta[a:b, cols] @ coef
-            folds[f] += float(np.sum((target[a:b, k] - pred) ** 2)) / scale
-    total = float(folds.sum())
-    return total, float(np.std(folds * N_FOLDS, ddof=1) / np.sqrt(N_FOLDS))

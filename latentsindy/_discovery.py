@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import json
+import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import sympy as sp
@@ -13,7 +12,76 @@ from ._results import CoefficientSeries
 from ._simulate import Simulation, integrate
 from ._symbolic import VectorField
 
-_FORMAT = "latentsindy.HiddenDiscovery/1"
+
+@dataclass(frozen=True)
+class HiddenState:
+    """What a hidden state is, in terms of the observed equations.
+
+    Attributes
+    ----------
+    name : str
+    terms : tuple of (equation, feature)
+        The observed-equation terms whose coefficients move with this state. The
+        state *is* the coefficient of the first one; the others read ``c + w * name``
+        in the equations (one hidden variable seen through several terms).
+    rate_of : str or None
+        Set when the state is the time derivative of another hidden state (a hidden
+        state that no coefficient shows, found because the first one's law needs it).
+    """
+
+    name: str
+    terms: tuple = ()
+    rate_of: str | None = None
+
+    def describe(self) -> str:
+        if self.rate_of is not None:
+            return f"{self.name} = d{self.rate_of}/dt"
+        (state, feature), *rest = self.terms
+        text = f"{self.name} = coefficient of {feature} in d{state}/dt"
+        if rest:
+            text += " (also moves the coefficient" + ("s" if len(rest) > 1 else "") + " of " \
+                + ", ".join(f"{f} in d{s}/dt" for s, f in rest) + ")"
+        return text
+
+
+@dataclass(frozen=True)
+class Term:
+    """One term of the closed system: ``value * feature`` in ``d state/dt``."""
+
+    state: str
+    feature: sp.Expr
+    value: float
+    stderr: float  # nan where not estimated (a definition, or refinement off)
+    fixed: bool  # part of a hidden state's definition (value 1)
+
+
+@dataclass(frozen=True)
+class Alternative:
+    """Another structure the judge considered, with its score."""
+
+    description: str
+    rhs: dict
+    hidden_states: tuple
+    score: float
+    score_se: float
+    size: int
+    status: str  # "scored", "rejected" (misfit far above the best) or "blew up"
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """How the closed system was fitted by integration (multiple shooting).
+
+    ``misfit_before`` / ``misfit_after``: RMS of (model - data) / std(data) over the
+    observed states, with the closure's coefficients and with the refined ones.
+    """
+
+    misfit_before: float
+    misfit_after: float
+    continuity_gap: float  # largest gap between segments, in noise units
+    n_segments: int
+    iterations: int
+    status: str
 
 
 @dataclass(frozen=True)
@@ -40,44 +108,50 @@ class HiddenDiscovery:
 
     Attributes
     ----------
-    times : ndarray (first trajectory) ; all_times : list of ndarray
-    observed : ndarray (n_times, n_observed), first trajectory
-    hidden : ndarray (n_times, n_hidden), first trajectory, in physical units
-    hidden_std : ndarray (n_times, n_hidden), posterior std of the hidden states
-    observed_names, hidden_names, state_names : tuple of str
-    hidden_terms : tuple of (state, feature)
-        The stage-one coefficients that became hidden states, in order.
-    rhs : dict of str -> sympy expression
-        Time derivative of each state, in Symbols named after the states.
-    sindy : pysindy.SINDy or None
-        The fitted closure model (None after :func:`load`).
+    times, observed, hidden : ndarray
+        First trajectory: times, observed states (n_times, n_observed), hidden states
+        (n_times, n_hidden). With refinement on, ``hidden`` is the closed system's
+        trajectory fitted to the data; the stage-two estimate is ``hidden_initial``.
+    hidden_std : ndarray (n_times, n_hidden)
+        Standard deviation of the hidden states (from the refinement's covariance;
+        the generator's posterior std without refinement; NaN where unknown).
+    observed_names, hidden_names : tuple of str
+    hidden_states : tuple of HiddenState
+    terms : tuple of Term
+        The closed system, term by term, with standard errors.
+    score, score_se : float
+        Held-out misfit (noise variances; about 1 when the system reproduces data it
+        was not fitted to down to their noise) and its standard error.
+    alternatives : tuple of Alternative
+        The other structures considered, best first.
+    uncertain : tuple of Alternative
+        Structures no larger than this one that explain the data equally well (score
+        within one standard error): the data cannot tell them apart.
+    refinement : Refinement or None
     coefficients : CoefficientSeries
-        Stage-one result (first trajectory).
+        Stage one's result (first trajectory).
     """
 
     times: np.ndarray
     observed: np.ndarray
     hidden: np.ndarray
     hidden_std: np.ndarray
-    observed_names: tuple[str, ...]
-    hidden_names: tuple[str, ...]
-    hidden_terms: tuple[tuple[str, str], ...]
-    rhs: dict
-    sindy: object
+    observed_names: tuple
+    hidden_names: tuple
+    hidden_states: tuple
+    terms: tuple
     coefficients: CoefficientSeries
-    all_times: list = field(repr=False)
-    all_observed: list = field(repr=False)
-    all_hidden: list = field(repr=False)
+    score: float = math.nan
+    score_se: float = math.nan
+    alternatives: tuple = ()
+    uncertain: tuple = ()
+    refinement: Refinement | None = None
+    notes: tuple = ()
+    all_times: list = field(repr=False, default_factory=list)
+    all_observed: list = field(repr=False, default_factory=list)
+    all_hidden: list = field(repr=False, default_factory=list)
+    hidden_initial: list = field(repr=False, default_factory=list)
     initial_state: np.ndarray = field(repr=False, default=None)
-    closure_candidates: list = field(repr=False, default_factory=list)
-
-    @classmethod
-    def build(cls, *, times, observed, hidden, hidden_std, observed_names, hidden_names,
-              hidden_terms, rhs, sindy, coefficients, initial_state, closure_candidates=()):
-        return cls(times[0], observed[0], hidden[0], hidden_std[0], tuple(observed_names),
-                   tuple(hidden_names), tuple(tuple(p) for p in hidden_terms), dict(rhs), sindy,
-                   coefficients, list(times), list(observed), list(hidden),
-                   np.asarray(initial_state, dtype=float), list(closure_candidates))
 
     # ----------------------------------------------------------- views
     @property
@@ -89,35 +163,66 @@ class HiddenDiscovery:
         return [sp.Symbol(n, real=True) for n in self.state_names]
 
     @property
+    def hidden_terms(self) -> tuple:
+        """Per hidden state, the (equation, feature) terms it enters (empty for a rate)."""
+        return tuple(h.terms for h in self.hidden_states)
+
+    @property
+    def rhs(self) -> dict:
+        """Time derivative of each state (sympy), built from :attr:`terms`."""
+        out = {n: sp.Integer(0) for n in self.state_names}
+        for term in self.terms:
+            if term.value != 0:
+                out[term.state] += sp.Float(term.value) * term.feature
+        return out
+
+    @property
     def equations(self) -> list[sp.Eq]:
         """``d state/dt = rhs`` as sympy equations, for display."""
         tt = sp.Symbol("t")
-        return [sp.Eq(sp.Derivative(sp.Function(n)(tt), tt), self.rhs[n])
-                for n in self.state_names]
+        rhs = self.rhs
+        return [sp.Eq(sp.Derivative(sp.Function(n)(tt), tt), rhs[n]) for n in self.state_names]
 
     @property
     def states(self) -> np.ndarray:
         """Observed and hidden states side by side (first trajectory)."""
         return np.hstack([self.observed, self.hidden])
 
+    def equation(self, state: str) -> dict:
+        """The terms of ``d state/dt`` as {feature (sympy expression): coefficient}."""
+        if state not in self.state_names:
+            raise KeyError(f"Unknown state {state!r}; states are {list(self.state_names)}.")
+        return {t.feature: t.value for t in self.terms if t.state == state and t.value != 0}
+
+    def coefficient(self, state: str, feature) -> float:
+        """Coefficient of ``feature`` (sympy expression or string such as ``"h*x"``) in
+        ``d state/dt``; 0 if absent."""
+        expr = sp.sympify(feature, locals={n: s for n, s in zip(self.state_names, self.symbols,
+                                                                 strict=True)}) \
+            if isinstance(feature, str) else feature
+        for term in self.terms:
+            if term.state == state and sp.expand(term.feature - expr) == 0:
+                return term.value
+        return 0.0
+
     def vector_field(self) -> VectorField:
         """The closed vector field ``f(t, y)`` for numpy arrays or torch tensors."""
-        return VectorField(self.symbols, [self.rhs[n] for n in self.state_names])
+        rhs = self.rhs
+        return VectorField(self.symbols, [rhs[n] for n in self.state_names])
 
     # ----------------------------------------------------------- checks
     def simulate(self, t=None, x0=None, *, max_steps=20_000) -> Simulation:
         """Integrate the closed system with torchdiffeq (dopri5, finite step budget).
 
-        ``x0`` defaults to the first observed (as smoothed by the differentiator, so
-        measurement noise does not set the start) plus hidden state; a blow-up or an
-        exhausted budget is reported in the result's ``status``, never a hang.
+        ``x0`` defaults to the fitted state at the first sample (observed and hidden);
+        a blow-up or an exhausted budget is reported in the result's ``status``.
         """
         t = self.times if t is None else np.asarray(t, dtype=float)
         x0 = self.initial_state if x0 is None else np.asarray(x0, dtype=float)
         if x0.shape != (len(self.state_names),):
             raise ValueError(f"x0 must have shape ({len(self.state_names)},) for states "
                              f"{list(self.state_names)}; got shape {x0.shape}.")
-        bound = 1e3 * max(1.0, float(np.max(np.abs(self.states))))
+        bound = 1e3 * max(1.0, float(np.nanmax(np.abs(self.states))))
         return integrate(self.vector_field(), t, x0, self.state_names, bound=bound,
                          max_steps=max_steps)
 
@@ -137,72 +242,51 @@ class HiddenDiscovery:
 
     def to_latex(self) -> str:
         """The equations as a LaTeX ``aligned`` block."""
-        lines = [rf"\dot{{{sp.latex(s)}}} &= {sp.latex(self.rhs[n])}"
+        rhs = self.rhs
+        lines = [rf"\dot{{{sp.latex(s)}}} &= {sp.latex(rhs[n])}"
                  for s, n in zip(self.symbols, self.state_names, strict=True)]
         return "\\begin{aligned}\n" + " \\\\\n".join(lines) + "\n\\end{aligned}"
 
     def summary(self) -> str:
-        hid = ", ".join(f"{h} = coefficient of {f} in d{s}/dt"
-                        for h, (s, f) in zip(self.hidden_names, self.hidden_terms, strict=True))
         lines = [f"Closed system: {len(self.observed_names)} observed + "
-                 f"{len(self.hidden_names)} hidden state(s)", f"  hidden: {hid}"]
-        lines += [f"  d{n}/dt = {_short(self.rhs[n])}" for n in self.state_names]
+                 f"{len(self.hidden_names)} hidden state(s)"]
+        lines += [f"  hidden: {h.describe()}" for h in self.hidden_states]
+        rhs = self.rhs
+        lines += [f"  d{n}/dt = {_short(rhs[n])}" for n in self.state_names]
+        estimated = [t for t in self.terms if t.state in self.hidden_names and not t.fixed
+                     and np.isfinite(t.stderr)]
+        if estimated:
+            lines.append("  hidden-equation coefficients (value +- standard error):")
+            lines += [f"    d{t.state}/dt: {t.feature}: {t.value:.6g} +- {t.stderr:.2g}"
+                      for t in estimated]
+        if self.refinement is not None:
+            r = self.refinement
+            lines.append(f"  refined by integration: misfit {r.misfit_before:.4g} -> "
+                         f"{r.misfit_after:.4g} (RMS / std of the data), {r.n_segments} "
+                         f"segments, {r.status}")
+        if np.isfinite(self.score):
+            lines.append(f"  held-out score {self.score:.4g} +- {self.score_se:.2g} "
+                         "(noise variances; ~1: reproduces unseen data down to its noise)")
+        if self.uncertain:
+            lines.append("  STRUCTURE UNCERTAIN: these explain the data equally well (score "
+                         "within one standard error, no larger):")
+            for alt in self.uncertain:
+                lines.append(f"    - {alt.description}: score {alt.score:.4g} +- "
+                             f"{alt.score_se:.2g}, {alt.size} parameters")
+                lines += [f"        d{n}/dt = {_short(e)}" for n, e in alt.rhs.items()]
+        elif self.alternatives:
+            alt = self.alternatives[0]
+            lines.append(f"  runner-up: {alt.description}, score {alt.score:.4g} "
+                         f"({alt.status}), {alt.size} parameters")
+        lines += [f"  note: {n}" for n in self.notes]
         return "\n".join(lines)
 
     # ----------------------------------------------------------- persistence
     def save(self, path) -> None:
-        """Write equations, series and names to a ``.npz`` file (see :func:`load`)."""
-        meta = {
-            "format": _FORMAT,
-            "observed_names": self.observed_names, "hidden_names": self.hidden_names,
-            "hidden_terms": self.hidden_terms,
-            "rhs": {n: sp.srepr(e) for n, e in self.rhs.items()},
-            "state_names_stage_one": self.coefficients.state_names,
-            "feature_names_stage_one": self.coefficients.feature_names,
-            "n_trajectories": len(self.all_times),
-            "initial_state": self.initial_state.tolist(),
-        }
-        arrays = {"meta": np.array(json.dumps(meta))}
-        for k, (tk, xk, hk) in enumerate(zip(self.all_times, self.all_observed, self.all_hidden,
-                                             strict=True)):
-            arrays |= {f"times_{k}": tk, f"observed_{k}": xk, f"hidden_{k}": hk}
-        c = self.coefficients
-        arrays |= {"hidden_std": self.hidden_std, "coef_mean": c.mean, "coef_samples": c.samples,
-                   "coef_support": c.support, "coef_time_varying": c.time_varying}
-        with open(Path(path), "wb") as fh:
-            np.savez_compressed(fh, **arrays)
+        """Write the result to a ``.npz`` file (see :func:`load`)."""
+        from ._persist import save
 
-
-def load(path) -> HiddenDiscovery:
-    """Read a result written by ``HiddenDiscovery.save``.
-
-    Only load files you trust: equations are stored as sympy ``srepr`` text and are
-    rebuilt by sympy's parser. The pysindy model is not stored (``sindy`` is None).
-    """
-    with np.load(Path(path), allow_pickle=False) as data:
-        meta = json.loads(str(data["meta"])) if "meta" in data.files else {}
-        if meta.get("format") != _FORMAT:
-            raise ValueError(f"{path} is not a saved HiddenDiscovery (format "
-                             f"{meta.get('format')!r}, expected {_FORMAT!r}).")
-        n = meta["n_trajectories"]
-        times = [data[f"times_{k}"] for k in range(n)]
-        observed = [data[f"observed_{k}"] for k in range(n)]
-        hidden = [data[f"hidden_{k}"] for k in range(n)]
-        coefs = CoefficientSeries.from_samples(
-            times[0], data["coef_mean"], data["coef_samples"], meta["state_names_stage_one"],
-            meta["feature_names_stage_one"], data["coef_support"], data["coef_time_varying"])
-        hidden_std = data["hidden_std"]
-    names = meta["observed_names"] + meta["hidden_names"]
-    local = {n: sp.Symbol(n, real=True) for n in names}
-    local |= {"Symbol": sp.Symbol, "Integer": sp.Integer, "Float": sp.Float, "Add": sp.Add,
-              "Mul": sp.Mul, "Pow": sp.Pow, "Rational": sp.Rational}
-    rhs = {n: sp.sympify(e, locals=local) for n, e in meta["rhs"].items()}
-    rhs = {n: e.subs({sp.Symbol(s): local[s] for s in names}) for n, e in rhs.items()}
-    return HiddenDiscovery.build(times=times, observed=observed, hidden=hidden,
-                                 hidden_std=[hidden_std], observed_names=meta["observed_names"],
-                                 hidden_names=meta["hidden_names"],
-                                 hidden_terms=meta["hidden_terms"], rhs=rhs, sindy=None,
-                                 coefficients=coefs, initial_state=meta["initial_state"])
+        save(self, path)
 
 
 def _short(expr):

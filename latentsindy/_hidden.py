@@ -1,35 +1,56 @@
-"""Stage two: time-varying coefficients become hidden states of a closed system."""
+"""Stage two: time-varying coefficients become hidden states of a closed system.
+
+The pipeline: stage one (:class:`DynamicSINDy`) fits time-varying coefficients; its
+varying terms, and alternatives to them, are proposed as structures
+(:mod:`latentsindy._hypotheses`); each is closed, refined by integration against the
+observed data and scored on held-out segments (:mod:`latentsindy._judge`); the best
+small system wins and the others stay on the result (:mod:`latentsindy._assemble`).
+"""
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 import pysindy as ps
-import sympy as sp
 
 from . import _validation as val
-from ._closure import fit_closure
-from ._derivatives import AdaptiveSavitzkyGolay
+from ._assemble import from_proposals, from_verdicts
+from ._derivatives import AdaptiveSavitzkyGolay, noise_level
 from ._discovery import HiddenDiscovery
-from ._estimator import DynamicSINDy
-from ._library import check_library, feature_expressions, fit_library, state_symbols
+from ._estimator import DynamicSINDy, _free_rows
+from ._hypotheses import Context, evaluate, propose
+from ._judge import judge_all
+from ._library import check_library, feature_expressions, fit_library
+from ._refine import NOISE_FLOOR, RefineOptions
+from ._smoother import Structure
 
 VARIATION_SIGMAS = 3.0  # variation must exceed this many posterior std ...
 VARIATION_RELATIVE = 0.05  # ... and this fraction of the coefficient's mean size
+THRESHOLD = 0.05  # smallest share of an equation's RMS rate a constant term may explain
 
 
 def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_terms=None,
                     hidden_names=None, closure_library=None, generator="timevae",
                     generator_options=None, training=None, differentiation_method=None,
-                    support=None, n_samples=64, seed=0, verbose=True) -> HiddenDiscovery:
+                    support=None, n_samples=64, refine=True, seed=0,
+                    verbose=True) -> HiddenDiscovery:
     """Infer hidden variables and a closed, autonomous ODE from partial observations.
 
-    Stage one fits time-varying coefficients Xi(t) (:class:`DynamicSINDy`); each
-    coefficient series that varies in time becomes a hidden state h in physical units,
-    so the observed equations read ``Theta(x) Xi`` with h substituted (Lotka-Volterra
-    with only the prey observed: ``xdot = x h`` with ``h = alpha - beta y``). pysindy
-    then finds equations for the hidden states over observed plus hidden states.
+    Stage one fits time-varying coefficients Xi(t) (:class:`DynamicSINDy`); a
+    coefficient that varies in time is a hidden state h in physical units (prey-only
+    Lotka-Volterra: ``xdot = x h`` with ``h = alpha - beta y``). Because any state
+    dependence can hide in a varying coefficient, discovery is a choice among
+    structures: stage one's own, each library term as the carrier of the variation,
+    varying coefficients that are affine images of one another as one hidden state,
+    and (when no first-order law reproduces the data) a hidden state's rate as a
+    second hidden state. Each structure's hidden series is estimated, closed by sparse
+    regression, refined by integrating the closed system against the observed data
+    (multiple shooting, torchdiffeq), its terms selected stepwise on that fit, and
+    scored on held-out segments; the sparsest system within one standard error of the
+    best score wins. Structures that are no larger and score as well are reported as
+    ``uncertain``.
 
     Parameters
     ----------
@@ -41,17 +62,20 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     feature_names : list of str, optional
         Names of the observed states (default ``x0, x1, ...``).
     hidden_terms : list of (state, feature), optional
-        Which coefficients are hidden states. By default a coefficient is hidden when
-        its variation over time exceeds 3 posterior standard deviations and 5% of its
-        mean size; the others become constants (their time average).
+        Fix the hidden states: each named coefficient is one hidden state (no search).
     hidden_names : list of str, optional
-        Names of the hidden states (default ``h0, h1, ...``).
+        Names for the hidden states found, in order (default ``h0, h1, ...``; the rate
+        of a hidden state ``h`` is ``h_rate``).
     closure_library : pysindy feature library, optional
         Candidates for the hidden equations (default polynomials of degree 2).
     generator, generator_options, training, differentiation_method, support
         Passed to :class:`DynamicSINDy`.
     n_samples : int
-        Posterior samples for the uncertainty band.
+        Posterior samples of stage one's uncertainty band.
+    refine : bool
+        Refine every candidate system by integration and judge on held-out data
+        (default). Off: candidates are ranked by their closure's held-out error and
+        the coefficients come from the closure's integral fit.
     seed : int
     verbose : bool
 
@@ -68,6 +92,8 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         raise TypeError("closure_library must be a pysindy feature library; got "
                         f"{type(closure_library).__name__}.")
     val.check_positive(n_samples, "n_samples", integer=True)
+    if not isinstance(refine, bool):
+        raise TypeError(f"refine must be True or False; got {refine!r}.")
     _, features = fit_library(check_library(library), trajs[:1], names)
     _check_hidden_request(hidden_terms, hidden_names, names, features)
 
@@ -82,56 +108,61 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         fits.append(model.fit(x, tk, feature_names=names))
         coefs.append(model.coefficients(n_samples=n_samples))
     first = coefs[0]
-    hidden_pairs = _hidden_pairs(coefs, hidden_terms)
-    n_hidden = len(hidden_pairs)
-    hidden_names = _hidden_names(hidden_names, n_hidden, names, hidden_pairs)
-    if n_hidden == 0:
+    pairs, significance = _varying(coefs, hidden_terms)
+    if not pairs:
         raise ValueError(
             "No coefficient varies in time beyond its uncertainty, so there is no hidden "
             f"variable to discover (active terms: {first.active_terms()}). If one should vary, "
             "name it with hidden_terms=[(state, feature)].")
 
-    # Observed equations: Theta(x) Xi with constants averaged and hidden states substituted
-    hs = state_symbols(hidden_names)
-    feats = feature_expressions(fits[0].library_, first.feature_names, names)
-    constants = np.mean([c.mean.mean(axis=0) for c in coefs], axis=0) * first.support
-    rhs = {}
-    for i, s in enumerate(names):
-        expr = sp.Integer(0)
-        for j, f in enumerate(feats):
-            if (s, first.feature_names[j]) in hidden_pairs:
-                expr += hs[hidden_pairs.index((s, first.feature_names[j]))] * f
-            elif constants[i, j] != 0:
-                expr += sp.Float(float(constants[i, j])) * f
-        rhs[s] = sp.expand(expr)
+    ctx = _context(fits, trajs, times, names, first, closure_library, support)
+    index = [(names.index(s), first.feature_names.index(f)) for s, f in pairs]
+    series = np.stack([first.term(s, f) for s, f in pairs], axis=1)
+    if hidden_terms is None:
+        proposals = propose(ctx, first.support, index, series)
+    else:
+        proposals = [evaluate(_named_structure(first.support, index), ctx, "hidden_terms")]
+    notes = []
+    if refine:
+        ordered, uncertain = judge_all(proposals, ctx, RefineOptions())
+        result = from_verdicts(ordered, uncertain, ctx, first, hidden_names, notes)
+    else:
+        stds = {ij: first.std[:, ij[0], ij[1]] for ij in index}
+        result = from_proposals(proposals, ctx, first, hidden_names, notes, stds)
+    if hidden_names is not None and len(hidden_names) != len(result.hidden_names):
+        notes.append(f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "
+                     f"hidden state(s) found; names used: {list(result.hidden_names)}")
+        result = dataclasses.replace(result, notes=tuple(notes))
+    return result
 
-    # Closure: pysindy on the hidden states, observed states as inputs
-    index = [(first.state_names.index(s), first.feature_names.index(f)) for s, f in hidden_pairs]
-    hidden = [np.stack([c.mean[:, i, j] for i, j in index], axis=1) for c in coefs]
-    diff = AdaptiveSavitzkyGolay()
-    hidden_dot, smooth_obs, spans = [], [], []
-    for h, x, tk, m in zip(hidden, trajs, times, fits, strict=True):
-        hidden_dot.append(diff(h, tk))
-        smooth, span = _smoothed(m, x, tk)
-        smooth_obs.append(smooth)
+
+def _context(fits, trajs, times, names, first, closure_library, support):
+    smoothed, spans = [], []
+    for m, x, tk in zip(fits, trajs, times, strict=True):
+        sm, span = _smoothed(m, x, tk)
+        smoothed.append(sm)
         spans.append(span)
-    sindy, table = fit_closure(hidden, hidden_dot, smooth_obs, times, closure_library,
-                               hidden_names, names, span=max(spans))
-    closure_feats = feature_expressions(sindy.feature_library, sindy.get_feature_names(),
-                                        list(hidden_names) + list(names))
-    for k, h in enumerate(hidden_names):
-        row = sindy.coefficients()[k]
-        rhs[h] = sp.expand(sum((sp.Float(float(c)) * f for c, f in zip(row, closure_feats,
-                                                                         strict=True) if c != 0),
-                               sp.Integer(0)))
-    stds = [np.stack([c.std[:, i, j] for i, j in index], axis=1) for c in coefs]
-    return HiddenDiscovery.build(
-        times=times, observed=trajs, hidden=hidden, hidden_std=stds,
-        initial_state=np.concatenate([smooth_obs[0][0], hidden[0][0]]),
-        observed_names=tuple(names), hidden_names=tuple(hidden_names),
-        hidden_terms=tuple(hidden_pairs), rhs=rhs, sindy=sindy, coefficients=first,
-        closure_candidates=table,
-    )
+    library = fits[0].library_
+    thetas = [np.asarray(a, dtype=float) for a in library.transform(smoothed)]
+    stds = np.std(np.vstack(trajs), axis=0)
+    sigma = np.maximum(np.mean([noise_level(x) for x in trajs], axis=0),
+                       NOISE_FLOOR * np.where(stds > 0, stds, 1.0))
+    span = int(max(spans))
+    return Context(tuple(names), tuple(first.feature_names),
+                   tuple(feature_expressions(library, first.feature_names, names)),
+                   [np.asarray(tk, float) for tk in times], [np.asarray(x) for x in trajs],
+                   smoothed, thetas, sigma, max(1, span // 2), span,
+                   _free_rows(support, names), THRESHOLD, closure_library)
+
+
+def _named_structure(support, index):
+    """One hidden state per named coefficient."""
+    sup = np.array(support, dtype=bool, copy=True)
+    loads = np.zeros((*sup.shape, len(index)))
+    for a, (i, k) in enumerate(index):
+        sup[i, k] = True
+        loads[i, k, a] = 1.0
+    return Structure(sup, loads, tuple(index))
 
 
 def _smoothed(model, x, t):
@@ -170,7 +201,9 @@ def _check_hidden_request(hidden_terms, hidden_names, states, features):
             raise ValueError(f"hidden_names {sorted(clash)} clash with the observed state names.")
 
 
-def _hidden_pairs(coefs, hidden_terms):
+def _varying(coefs, hidden_terms):
+    """Stage one's varying coefficients (or the named ones), most significant first:
+    variation over time relative to the posterior spread, the weakest trajectory's."""
     first = coefs[0]
     if hidden_terms is not None:
         pairs = [tuple(p) for p in hidden_terms]
@@ -179,25 +212,18 @@ def _hidden_pairs(coefs, hidden_terms):
             if p not in active:
                 raise ValueError(f"hidden term {p!r} was removed by the sparsity stage "
                                  f"(active terms: {sorted(active)}); fix it with support=.")
-        return pairs
-    pairs = []
+        return pairs, [np.inf] * len(pairs)
+    found = []
     for s, f in first.active_terms():
         if all(_varies(c.term(s, f), c.term_std(s, f)) for c in coefs):
-            pairs.append((s, f))
-    return pairs
+            sig = min(float(np.std(c.term(s, f))) / max(float(np.mean(c.term_std(s, f))),
+                                                        1e-300) for c in coefs)
+            found.append((sig, (s, f)))
+    found.sort(key=lambda item: -item[0])
+    return [p for _, p in found], [s for s, _ in found]
 
 
 def _varies(mean, std):
     variation = float(np.std(mean))
     return (variation > VARIATION_SIGMAS * float(np.mean(std))
             and variation > VARIATION_RELATIVE * float(np.mean(np.abs(mean))))
-
-
-def _hidden_names(names, n_hidden, observed, pairs):
-    if names is None:
-        names = [f"h{k}" for k in range(n_hidden)]
-    if len(names) != n_hidden:
-        raise ValueError(f"hidden_names has {len(names)} name(s) but {n_hidden} hidden state(s) "
-                         f"were found: coefficients {pairs}. Pass {n_hidden} names, or choose "
-                         "the hidden states with hidden_terms=[(state, feature), ...].")
-    return list(names)

@@ -21,7 +21,12 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from ._selection import freeze_constant_terms, restore_absorbed_terms, restore_terms
-from ._training import CoefficientModel, check_nonnegative_fields, least_squares_constants
+from ._training import (
+    CoefficientModel,
+    check_nonnegative_fields,
+    least_squares_constants,
+    roughness,
+)
 from .generators.hypersindy import (
     chunk_centres,
     detach_state,
@@ -29,7 +34,6 @@ from .generators.hypersindy import (
     interpolate_chunks,
 )
 
-_EPS = torch.finfo(torch.float32).eps
 MODES = ("alternate", "joint", "online")
 # hard-concrete gate constants (Louizos et al. 2018)
 _BETA, _GAMMA, _ZETA = 2.0 / 3.0, -0.1, 1.1
@@ -259,7 +263,7 @@ def windowed_constants(theta, xdot, support, window):
 
 
 def _window_loss(model, theta, xdot, weights, inputs, noise_var, state, previous,
-                 stochastic, start, stop):
+                 stochastic, start, stop, floor):
     """Loss terms of the window starting at ``start``; returns (terms, chunk
     coefficients, new state).
 
@@ -287,15 +291,15 @@ def _window_loss(model, theta, xdot, weights, inputs, noise_var, state, previous
     active = model.support.to(xi.dtype)
     n_active = active.sum().clamp_min(1.0)
     track = xi_c if previous is None else torch.cat([previous, xi_c], dim=1)
-    per_term = (track[:, 1:] - track[:, :-1]).abs().sum(dim=(0, 1)) / ((hi - lo)
-                                                                      * xi_c.shape[0])
+    # slope changes of the chunk track, per time step of the window
+    per_term = roughness(track) * (track.shape[1] - 2) / max(hi - lo, 1)
     size = model.last_size  # mean |Xi| in this window, with the gates' expected values
-    scale = n_active * ((size * active).sum() / n_active + _EPS).detach()
-    tv = (per_term * active).sum() / scale
+    scale = n_active * torch.clamp((size * active).sum() / n_active, min=floor).detach()
+    rough = (per_term * active).sum() / scale
     shared = shared_variation(model)
-    tv_shared = (per_term * shared).sum() / scale
-    return {"mse": mse, "kl": kl, "tv": tv, "tv_shared": tv_shared,
-            "tv_lone": tv - tv_shared, "size": size}, xi_c, state
+    rough_shared = (per_term * shared).sum() / scale
+    return {"mse": mse, "kl": kl, "rough": rough, "rough_shared": rough_shared,
+            "rough_lone": rough - rough_shared, "size": size}, xi_c, state
 
 
 def shared_variation(model) -> torch.Tensor:
@@ -312,9 +316,9 @@ def shared_variation(model) -> torch.Tensor:
     return varying * (varying.sum(dim=1, keepdim=True) >= 2)
 
 
-def _refit_tv(terms, options):
-    return (options.refit_smoothness * terms["tv_shared"]
-            + options.lone_smoothness * terms["tv_lone"])
+def _refit_roughness(terms, options):
+    return (options.refit_smoothness * terms["rough_shared"]
+            + options.lone_smoothness * terms["rough_lone"])
 
 
 def _epochs(steps, per_epoch, minimum):
@@ -392,7 +396,7 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
             for start, stop in zip(bounds[:-1], bounds[1:], strict=True):
                 terms, xi_c, state = _window_loss(
                     model, theta, xdot, weights, inputs, noise_var, state, previous,
-                    stochastic=phase == 1, start=start, stop=stop)
+                    stochastic=phase == 1, start=start, stop=stop, floor=options.threshold)
                 state = detach_state(state)
                 previous = xi_c[:, -1:].detach()
                 size_sum += terms["size"].detach() * xi_c.shape[1]
@@ -404,10 +408,10 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
                     l0_var = (model.expected_l0(model.log_alpha_var) * model.time_varying
                               * model.support * free).sum() / n_states
                     reg = options.sparsity * l0 + options.l1 * l1 + var_cost * l0_var \
-                        + options.smoothness * terms["tv"]
+                        + options.smoothness * terms["rough"]
                 else:
                     l0 = torch.zeros(())
-                    reg = bayes * _refit_tv(terms, options)
+                    reg = bayes * _refit_roughness(terms, options)
                 loss = terms["mse"] + kl_w * terms["kl"] + reg
                 for name in active_groups:
                     optimisers[name].zero_grad(set_to_none=True)
@@ -426,7 +430,8 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
                 history.append({"phase": phase, "epoch": epoch, "loss": float(loss.detach()),
                                 "mse": float(terms["mse"].detach()),
                                 "kl": float(terms["kl"].detach()),
-                                "tv": float(terms["tv"].detach()), "l0": float(l0.detach()),
+                                "rough": float(terms["rough"].detach()),
+                                "l0": float(l0.detach()),
                                 "kl_weight": kl_w, "trained": active_groups})
                 bar.update(1)
             if phase == 1 and not warming:
@@ -466,9 +471,10 @@ def _online_pass(model, theta, xdot, weights, inputs, noise_var, starts, window,
         for _ in range(options.online_steps):
             terms, xi_c, _ = _window_loss(model, theta, xdot, weights, inputs, noise_var,
                                           None, previous, False, start,
-                                          min(start + window, theta.shape[1]))
+                                          min(start + window, theta.shape[1]),
+                                          options.threshold)
             loss = terms["mse"] + options.kl_weight * terms["kl"] \
-                + bayes * _refit_tv(terms, options)
+                + bayes * _refit_roughness(terms, options)
             for opt in opts:
                 opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -13,6 +13,7 @@ from tqdm.auto import tqdm
 from ._selection import restore_absorbed_terms, restore_terms
 
 _EPS = torch.finfo(torch.float32).eps
+TV_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -49,11 +50,12 @@ class TrainingOptions:
         L1 (log) penalty whose slope is 1 at zero and falls as a term grows past
         ``threshold``, so it removes small terms without shrinking the ones that stay.
     smoothness : float
-        Weight of the normalised total variation in phase one.
+        Weight of the normalised roughness (:func:`roughness`: half the absolute
+        second differences, i.e. changes of slope) in phase one.
     refit_smoothness : float
-        Weight of the normalised total variation in phase two, scaled by the noise
-        level (derivative noise variance times the number of increments, between 0.01
-        and 1): clean data are fitted almost exactly, noisy data are smoothed.
+        Weight of the normalised roughness in phase two, scaled by the noise level
+        (derivative noise variance times the number of increments, between 0.01 and
+        1): clean data are fitted almost exactly, noisy data are smoothed.
     grad_clip : float
         Maximum gradient norm.
     """
@@ -185,17 +187,36 @@ def loss_terms(model, theta, xdot, weights, inputs, noise_var, threshold, free_r
     active = model.support.to(xi.dtype)
     n_active = active.sum().clamp_min(1.0)
     size = xi.abs().mean(dim=(0, 1)) * active  # mean |Xi| over time, per term
-    tv = ((xi[:, 1:] - xi[:, :-1]).abs().mean(dim=(0, 1)) * active).sum() / n_active
+    rough = (roughness(xi) * active).sum() / n_active
     mean_abs = size.sum() / n_active
-    tv = tv / (mean_abs.detach() + _EPS)
-    # A Laplace prior on increments in ELBO units would weigh the TV by the noise
-    # variance times the number of increments: clean data are then fitted exactly.
+    # relative to the coefficients' size, but never to less than the pruning
+    # threshold: a coefficient that averages about zero must still be free to vary
+    rough = rough / torch.clamp(mean_abs.detach(), min=threshold)
+    # A Laplace prior on slope changes in ELBO units would weigh the roughness by the
+    # noise variance times the number of increments: clean data are fitted exactly.
     bayes = noise_var * xi.shape[1] * n_active.detach() / xdot.shape[-1]
     # log penalty (reweighted L1): slope 1 at zero, 1/(1 + size/threshold) beyond, so
     # small terms are pushed hard and the terms that stay are barely shrunk
     l1 = (threshold * torch.log1p(size / threshold) * free_rows[:, None]).sum()
-    return {"mse": mse, "kl": kl, "l1": l1, "tv": tv,
-            "tv_bayes": min(1.0, max(0.01, float(bayes)))}
+    return {"mse": mse, "kl": kl, "l1": l1, "rough": rough,
+            "rough_bayes": min(1.0, max(0.01, float(bayes)))}
+
+
+def roughness(track: torch.Tensor) -> torch.Tensor:
+    """Half the mean absolute second difference along time (dim 1), per trailing entry.
+
+    The smoothness prior of both generators. Unlike total variation it does not
+    penalise amplitude: flattening a peak or a trough does not lower it (the slope
+    still turns), so extrema are not clipped and a coefficient can follow a smooth
+    hidden state; a jump costs about what total variation charges (two slope changes
+    of half its size each), so switches stay sharp, and sample-to-sample noise is
+    penalised as before.
+    """
+    if track.shape[1] < 3:
+        return track.new_zeros(track.shape[2:])
+    second = track[:, 2:] - 2 * track[:, 1:-1] + track[:, :-2]
+    first = track[:, 1:] - track[:, :-1]
+    return 0.5 * second.abs().mean(dim=(0, 1)) + TV_SHARE * first.abs().mean(dim=(0, 1))
 
 
 def _cosine(step, total, lr0, lr_min):
@@ -228,11 +249,11 @@ def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
                 # warm-up: fit first, so a term whose time average is small but whose
                 # variation matters is not pruned before the generator learns it
                 sparsity = 0.0 if warming else options.sparsity
-                reg = sparsity * terms["l1"] + options.smoothness * terms["tv"]
+                reg = sparsity * terms["l1"] + options.smoothness * terms["rough"]
             else:
                 # Refit: smoothing follows the noise level (exact fits on clean data),
                 # capped at the normalised weight so rich variation is not flattened.
-                reg = options.refit_smoothness * terms["tv_bayes"] * terms["tv"]
+                reg = options.refit_smoothness * terms["rough_bayes"] * terms["rough"]
             loss = terms["mse"] + options.kl_weight * terms["kl"] + reg
             opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -1,8 +1,10 @@
-"""Synthetic systems with known time-varying coefficients (the paper's test beds).
+"""Synthetic systems with known truth: the paper's test beds and systems with a state to hide.
 
 Coefficient shapes are small frozen callables of time; systems integrate the ODE
 accurately and return a :class:`SystemData` with the states, exact derivatives and
-the true coefficients.
+the true coefficients. Autonomous systems whose states can be hidden
+(:func:`lotka_volterra`, :func:`lorenz`, :func:`fitzhugh_nagumo`,
+:func:`modulated_oscillator`) are test beds for :func:`latentsindy.discover_hidden`.
 
 Examples
 --------
@@ -15,10 +17,12 @@ Examples
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.integrate import solve_ivp
+
+from ._shapes import Constant, FourierSeries, Sigmoid, Sinusoid, Switch, Switches
 
 __all__ = [
     "Constant",
@@ -28,99 +32,12 @@ __all__ = [
     "Sinusoid",
     "FourierSeries",
     "SystemData",
+    "fitzhugh_nagumo",
     "harmonic_oscillator",
     "lorenz",
     "lotka_volterra",
+    "modulated_oscillator",
 ]
-
-
-@dataclass(frozen=True)
-class Constant:
-    """A coefficient that does not change: ``value`` for all t."""
-
-    value: float
-
-    def __call__(self, t):
-        return np.full_like(np.asarray(t, dtype=float), self.value)
-
-
-@dataclass(frozen=True)
-class Switch:
-    """One abrupt switch from ``before`` to ``after`` at time ``at``."""
-
-    before: float
-    after: float
-    at: float
-
-    def __call__(self, t):
-        return np.where(np.asarray(t, dtype=float) < self.at, self.before, self.after)
-
-
-@dataclass(frozen=True)
-class Switches:
-    """Several switches: ``values[k]`` holds on ``[times[k-1], times[k])``."""
-
-    values: tuple[float, ...]
-    times: tuple[float, ...]
-
-    def __post_init__(self):
-        if len(self.values) != len(self.times) + 1:
-            raise ValueError(
-                f"Switches needs one more value than switch times; got {len(self.values)} "
-                f"values and {len(self.times)} times."
-            )
-        if np.any(np.diff(self.times) <= 0):
-            raise ValueError(f"Switch times must increase strictly; got {self.times}.")
-
-    def __call__(self, t):
-        index = np.searchsorted(np.asarray(self.times), np.asarray(t, dtype=float), side="right")
-        return np.asarray(self.values, dtype=float)[index]
-
-
-@dataclass(frozen=True)
-class Sigmoid:
-    """Logistic transition ``low + (high - low) / (1 + exp(-sharpness (t - at)))``."""
-
-    low: float
-    high: float
-    at: float
-    sharpness: float = 1.0
-
-    def __call__(self, t):
-        arg = -self.sharpness * (np.asarray(t, dtype=float) - self.at)
-        return self.low + (self.high - self.low) / (1.0 + np.exp(np.clip(arg, -700, 700)))
-
-
-@dataclass(frozen=True)
-class Sinusoid:
-    """``offset + amplitude sin(2 pi frequency t + phase)``."""
-
-    offset: float
-    amplitude: float
-    frequency: float
-    phase: float = 0.0
-
-    def __call__(self, t):
-        t = np.asarray(t, dtype=float)
-        return self.offset + self.amplitude * np.sin(2 * np.pi * self.frequency * t + self.phase)
-
-
-@dataclass(frozen=True)
-class FourierSeries:
-    """``offset + sum_k amplitudes[k] sin(2 pi frequencies[k] t + phases[k])``."""
-
-    offset: float
-    amplitudes: tuple[float, ...]
-    frequencies: tuple[float, ...]
-    phases: tuple[float, ...] = field(default=())
-
-    def __call__(self, t):
-        t = np.asarray(t, dtype=float)
-        phases = self.phases or (0.0,) * len(self.amplitudes)
-        out = np.full_like(t, self.offset)
-        for a, f, p in zip(self.amplitudes, self.frequencies, phases, strict=True):
-            out = out + a * np.sin(2 * np.pi * f * t + p)
-        return out
 
 
 Coefficient = float | Callable[[np.ndarray], np.ndarray]
@@ -320,3 +237,73 @@ def lotka_volterra(
         ("y", "x y"): series["delta"],
     }
     return _finish(t, x, x_dot, ("x", "y"), series, terms, noise, rng)
+
+
+def fitzhugh_nagumo(
+    a: float = 0.7,
+    b: float = 0.8,
+    epsilon: float = 0.08,
+    current: float = 0.5,
+    *,
+    t_end: float = 150.0,
+    n_times: int = 2000,
+    x0: Sequence[float] = (-1.0, 1.0),
+    noise: float = 0.0,
+    seed: int = 0,
+) -> SystemData:
+    """FitzHugh-Nagumo neuron: ``vdot = v - v^3/3 - w + current``,
+    ``wdot = epsilon (v + a - b w)``.
+
+    A cubic oscillator driven by the recovery variable w, which follows its own ODE
+    coupled to v: with only v observed, ``current - w`` is a hidden additive input.
+    """
+    rng = np.random.default_rng(seed)
+    t = _time_grid(t_end, n_times)
+
+    def rhs(s, p):
+        v, w = s
+        return np.array([v - v**3 / 3.0 - w + current, epsilon * (v + a - b * w)])
+
+    x, x_dot, _ = _simulate(rhs, x0, t, {}, 0.0, rng)
+    one = np.ones_like(t)
+    terms = {("v", "1"): current * one, ("v", "v"): one, ("v", "v^3"): -one / 3.0,
+             ("v", "w"): -one, ("w", "1"): epsilon * a * one, ("w", "v"): epsilon * one,
+             ("w", "w"): -epsilon * b * one}
+    return _finish(t, x, x_dot, ("v", "w"), {}, terms, noise, rng)
+
+
+def modulated_oscillator(
+    omega: float = 1.5,
+    a: float = 0.0,
+    b: float = 0.0,
+    k: float = 1.0,
+    epsilon: float = 1.0,
+    *,
+    t_end: float = 40.0,
+    n_times: int = 2000,
+    x0: Sequence[float] = (1.0, 0.0, 0.6),
+    noise: float = 0.0,
+    seed: int = 0,
+) -> SystemData:
+    """An oscillator whose growth rate z is driven by its own amplitude:
+    ``xdot = (a + z) x - omega y``, ``ydot = omega x + (b + k z) y``,
+    ``zdot = epsilon (1 - x^2 - y^2)``.
+
+    With x and y observed, the hidden z enters both equations (two coefficients that
+    are affine images of one another); the amplitude swells and fades periodically.
+    """
+    rng = np.random.default_rng(seed)
+    t = _time_grid(t_end, n_times)
+
+    def rhs(s, p):
+        x, y, z = s
+        return np.array([(a + z) * x - omega * y, omega * x + (b + k * z) * y,
+                         epsilon * (1.0 - x * x - y * y)])
+
+    x, x_dot, _ = _simulate(rhs, x0, t, {}, 0.0, rng)
+    one = np.ones_like(t)
+    terms = {("x", "x"): a * one, ("x", "x z"): one, ("x", "y"): -omega * one,
+             ("y", "x"): omega * one, ("y", "y"): b * one, ("y", "y z"): k * one,
+             ("z", "1"): epsilon * one, ("z", "x^2"): -epsilon * one,
+             ("z", "y^2"): -epsilon * one}
+    return _finish(t, x, x_dot, ("x", "y", "z"), {}, terms, noise, rng)

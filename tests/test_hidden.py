@@ -1,4 +1,4 @@
-"""Stage two: discover_hidden on Lotka-Volterra and the oscillator, and the round trips."""
+"""Stage two: discover_hidden on the tutorials, the result object and its checks."""
 
 import sys
 from pathlib import Path
@@ -9,11 +9,13 @@ import pytest
 import sympy as sp
 import torch
 
-from latentsindy import HiddenDiscovery, discover_hidden, load, systems
+from latentsindy import HiddenDiscovery, HiddenState, discover_hidden, systems
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 import lotka_volterra  # noqa: E402
 import oscillator  # noqa: E402
+
+X, H = sp.symbols("x h", real=True)
 
 
 @pytest.fixture(scope="module")
@@ -26,64 +28,63 @@ def lv():
 
 
 def test_lv_hidden_state_and_equation(lv):
+    """Exact data: exact structure, hidden-equation coefficients within 0.1% (measured
+    0.01%), the hidden state is the coefficient of x in dx/dt."""
     data, result = lv
     assert isinstance(result, HiddenDiscovery)
     assert result.state_names == ("x", "h")
-    assert result.hidden_terms == (("x", "x"),)
-    assert result.compare_hidden(data.x_clean[:, 1]).r2[0] >= 0.999
-    errors, extra, missing = lotka_volterra.hidden_equation_errors(result)
+    assert result.hidden_states == (HiddenState("h", (("x", "x"),)),)
+    assert result.hidden_terms == ((("x", "x"),),)
+    assert result.compare_hidden(data.x_clean[:, 1]).r2[0] >= 0.9999
+    errors, extra, missing = lotka_volterra.equation_errors(result.equation("h"),
+                                                            lotka_volterra.TRUE_HIDDEN)
     assert extra == [] and missing == []
-    assert max(errors.values()) <= 0.01
-    x, h = sp.symbols("x h", real=True)
-    assert result.rhs["x"] == x * h
+    assert max(errors.values()) <= 1e-3
+    assert sp.expand(result.rhs["x"] - X * H) == 0
+    assert result.uncertain == ()
+
+
+def test_lv_hidden_equation_has_standard_errors(lv):
+    """Every estimated hidden-equation coefficient carries a finite standard error that
+    covers its (tiny, on exact data) error; the definition xdot = h x is fixed."""
+    _, result = lv
+    hidden = [t for t in result.terms if t.state == "h"]
+    assert len(hidden) == 4 and all(not t.fixed and np.isfinite(t.stderr) for t in hidden)
+    definition = [t for t in result.terms if t.state == "x"]
+    assert len(definition) == 1 and definition[0].fixed and definition[0].value == 1.0
+    truth = lotka_volterra.TRUE_HIDDEN
+    for t in hidden:
+        assert abs(t.value - truth[t.feature]) <= max(10 * t.stderr, 1e-3 * abs(truth[t.feature]))
+
+
+def test_lv_refinement_is_reported(lv):
+    _, result = lv
+    r = result.refinement
+    assert r is not None and r.misfit_after < r.misfit_before and r.misfit_after < 1e-3
+    assert r.continuity_gap < 0.1
+    assert result.score < 0.05  # exact data: held-out misfit far below the noise floor
+    text = result.summary()
+    assert "h = coefficient of x in dx/dt" in text
+    assert "refined by integration" in text and "+-" in text
 
 
 def test_lv_with_one_percent_noise():
-    """Issue 3 bar at 1% noise: hidden R^2 >= 0.99, hidden-equation coefficients within
-    3%, no extra or missing terms (measured 0.99886 and 1.9%)."""
-    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000, noise=0.01)
-    result = discover_hidden(data.x[:, :1], ps.PolynomialLibrary(degree=3, include_bias=False),
-                             t=data.t, feature_names=["x"], hidden_names=["h"], verbose=False)
-    assert result.compare_hidden(data.x_clean[:, 1]).r2[0] >= 0.99
-    errors, extra, missing = lotka_volterra.hidden_equation_errors(result)
-    assert extra == [] and missing == []
-    assert max(errors.values()) <= 0.03
-
-
-def test_closure_integral_refit_is_exact_on_clean_data():
-    """The closure's final fit (increments over ``span`` samples against the library's
-    integrals) is exact on exact data: the predator's equation of noise-free
-    Lotka-Volterra within 1e-4, pointwise-like (span 1) or over 45 samples."""
-    from latentsindy._closure import fit_closure
-
-    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000)
-    y, x = data.x_clean[:, 1:2], data.x_clean[:, :1]
-    ydot = data.x_dot[:, 1:2]
-    for span in (1, 45):
-        model, _ = fit_closure([y], [ydot], [x], [data.t], ps.PolynomialLibrary(degree=2),
-                               ["y"], ["x"], span=span)
-        found = dict(zip(model.get_feature_names(), model.coefficients()[0], strict=True))
-        assert {k for k, v in found.items() if v != 0} == {"y", "y x"}
-        assert found["y"] == pytest.approx(-1.5, rel=1e-4)
-        assert found["y x"] == pytest.approx(0.075, rel=1e-4)
+    """Issue 9 bars on the tutorial at 1% noise: hidden-equation coefficients within
+    0.5% (measured 0.06%), exact structure, and the closed system reproduces the prey
+    with normalised RMSE <= 0.05 (measured 0.010, the noise level)."""
+    out = lotka_volterra.main(noise_levels=(0.01,), output=None, verbose=False)[0.01]
+    assert out["extra"] == [] and out["missing"] == []
+    assert max(out["errors"].values()) <= 0.005
+    assert out["r2"] >= 0.999
+    assert out["nrmse"] <= 0.05
 
 
 def test_lv_affine_map_recovers_predator(lv):
     data, result = lv
     cmp = result.compare_hidden(data.x_clean[:, 1])
     # y = (alpha - h) / beta  ->  scale -1/beta = -10, offset alpha/beta = 10
-    assert cmp.scale[0, 0] == pytest.approx(-10.0, rel=0.01)
-    assert cmp.offset[0] == pytest.approx(10.0, rel=0.01)
-
-
-def test_sympy_rhs_matches_pysindy_prediction(lv):
-    _, result = lv
-    field = result.vector_field()
-    states = result.states
-    ours = field(0.0, states)[:, 1]
-    theirs = result.sindy.predict(result.hidden, u=result.all_observed[0])[:, 0]
-    # pysindy's library sees the smoothed observed states; on noise-free data they agree
-    np.testing.assert_allclose(ours, theirs, rtol=1e-3, atol=1e-6 * np.abs(theirs).max())
+    assert cmp.scale[0, 0] == pytest.approx(-10.0, rel=1e-3)
+    assert cmp.offset[0] == pytest.approx(10.0, rel=1e-3)
 
 
 def test_vector_field_numpy_and_torch_agree(lv):
@@ -93,12 +94,22 @@ def test_vector_field_numpy_and_torch_agree(lv):
     np.testing.assert_allclose(field(0.0, torch.as_tensor(y)).numpy(), field(0.0, y), rtol=1e-12)
 
 
+def test_reported_hidden_series_is_the_closed_systems_trajectory(lv):
+    """With refinement the hidden series is the closed system's own trajectory: its
+    derivative matches the hidden equation evaluated on the reported states."""
+    _, result = lv
+    rate = np.gradient(result.hidden[:, 0], result.times)
+    model = result.vector_field()(0.0, result.states)[:, 1]
+    inner = slice(50, -50)
+    assert np.max(np.abs(rate[inner] - model[inner])) < 1e-3 * np.max(np.abs(model))
+
+
 def test_simulation_reproduces_observed(lv):
     data, result = lv
     sim = result.simulate()
     assert sim.success, sim.message
     nrmse = np.sqrt(np.mean((sim.x[:, 0] - data.x[:, 0]) ** 2)) / np.std(data.x[:, 0])
-    assert nrmse < 0.1
+    assert nrmse < 1e-3
 
 
 def test_blow_up_is_reported_not_hung(lv):
@@ -109,32 +120,12 @@ def test_blow_up_is_reported_not_hung(lv):
     assert np.all(np.isnan(sim.x))
 
 
-def test_save_load_round_trip(lv, tmp_path):
-    _, result = lv
-    path = tmp_path / "lv.npz"
-    result.save(path)
-    back = load(path)
-    assert back.state_names == result.state_names
-    assert back.hidden_terms == result.hidden_terms
-    for name in result.state_names:
-        assert sp.simplify(back.rhs[name] - result.rhs[name]) == 0
-    np.testing.assert_array_equal(back.hidden, result.hidden)
-    np.testing.assert_array_equal(back.coefficients.mean, result.coefficients.mean)
-    assert back.to_latex() == result.to_latex()
-
-
-def test_load_rejects_other_files(tmp_path):
-    path = tmp_path / "other.npz"
-    np.savez(path, meta=np.array('{"format": "something"}'))
-    with pytest.raises(ValueError, match="not a saved HiddenDiscovery"):
-        load(path)
-
-
 def test_summary_and_latex(lv):
     _, result = lv
-    assert "h = coefficient of x in dx/dt" in result.summary()
-    assert r"\dot{x} &= h x" in result.to_latex()
+    assert r"\dot{x} &= 1.0 h x" in result.to_latex()
     assert len(result.equations) == 2
+    assert result.coefficient("x", "h*x") == 1.0
+    assert result.coefficient("h", "x**2") == 0.0
 
 
 def test_compare_hidden_length_mismatch(lv):
@@ -147,6 +138,12 @@ def test_simulate_bad_x0(lv):
     _, result = lv
     with pytest.raises(ValueError, match=r"x0 must have shape \(2,\)"):
         result.simulate(x0=[1.0])
+
+
+def test_equation_unknown_state(lv):
+    _, result = lv
+    with pytest.raises(KeyError, match="Unknown state 'y'"):
+        result.equation("y")
 
 
 FAST = {"support_steps": 300, "refit_steps": 200}
@@ -168,6 +165,12 @@ def test_hidden_names_count():
                         hidden_terms=[("x", "x")], training=FAST, verbose=False)
 
 
+def test_bad_refine_flag():
+    data = systems.lotka_volterra(n_times=300)
+    with pytest.raises(TypeError, match="refine must be True or False; got 'yes'"):
+        discover_hidden(data.x[:, :1], t=data.t, refine="yes", verbose=False)
+
+
 def test_no_hidden_variable_is_an_error():
     data = systems.harmonic_oscillator(A=-2.0, B=1.0, n_times=600, t_end=20)
     with pytest.raises(ValueError, match="No coefficient varies in time"):
@@ -182,23 +185,48 @@ def test_bad_closure_library():
 
 
 def test_several_trajectories():
+    """Two prey series from different starts: one closed system, a hidden series each,
+    both reproduced (R^2 against each true predator)."""
     a = systems.lotka_volterra(n_times=800, t_end=12, x0=(10.0, 5.0))
     b = systems.lotka_volterra(n_times=800, t_end=12, x0=(30.0, 8.0))
     result = discover_hidden([a.x[:, :1], b.x[:, :1]],
                              ps.PolynomialLibrary(degree=1, include_bias=False),
                              t=[a.t, b.t], feature_names=["x"], verbose=False)
     assert len(result.all_hidden) == 2
-    assert result.compare_hidden(a.x_clean[:, 1]).r2[0] > 0.99
+    assert result.compare_hidden(a.x_clean[:, 1]).r2[0] > 0.999
+    design = np.column_stack([result.all_hidden[1], np.ones(len(b.t))])
+    fit = np.linalg.lstsq(design, b.x_clean[:, 1], rcond=None)[0]
+    resid = b.x_clean[:, 1] - design @ fit
+    assert 1 - resid.var() / b.x_clean[:, 1].var() > 0.999
+
+
+def test_refinement_can_be_turned_off():
+    """refine=False: the closure's coefficients, the structured estimate of the hidden
+    series, no refinement record; still the right structure on clean data, coefficients
+    within 5% (measured 2.3%; refined: 0.01%)."""
+    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=1000, t_end=15)
+    result = discover_hidden(data.x[:, :1], ps.PolynomialLibrary(degree=1, include_bias=False),
+                             t=data.t, feature_names=["x"], hidden_names=["h"], refine=False,
+                             verbose=False)
+    assert result.refinement is None and np.isnan(result.score)
+    errors, extra, missing = lotka_volterra.equation_errors(result.equation("h"),
+                                                            lotka_volterra.TRUE_HIDDEN)
+    assert extra == [] and missing == [] and max(errors.values()) < 0.05
 
 
 def test_lotka_volterra_example_runs(tmp_path):
     out = lotka_volterra.main(noise_levels=(0.01,), n_times=600, output=tmp_path,
                               verbose=False)
     assert (tmp_path / "lotka_volterra.png").exists()
-    assert out[0.01]["r2"] > 0.9
+    assert out[0.01]["r2"] > 0.99
 
 
 def test_oscillator_example_runs(tmp_path):
+    """The oscillator tutorial (noise-free, T=600): one hidden state B with the logistic
+    law -6 + 5B - B^2 within 1% (the paper: 2%)."""
     out = oscillator.main(noise_levels=(0.0,), n_times=600, output=tmp_path, verbose=False)
     assert (tmp_path / "oscillator.png").exists()
-    assert len(out[0.0]["result"].hidden_names) == 1
+    r = out[0.0]
+    assert r["result"].hidden_names == ("B",)
+    assert r["extra"] == [] and r["missing"] == []
+    assert max(r["errors"].values()) < 0.01

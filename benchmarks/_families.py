@@ -1,0 +1,195 @@
+"""Randomised families of systems with a hidden state, and their truth in sympy.
+
+Each family draws parameters and initial conditions from seeded ranges, simulates the
+system with ``latentsindy.systems`` and states the truth as a closed sympy system in the
+observed states and the *true* hidden variables, with symbolic parameters (so a term
+that is structurally absent is an exact zero, whatever the draw). The evaluation
+(``_scoring.py``) moves that truth into the variables latentsindy reports.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pysindy as ps
+import sympy as sp
+
+from latentsindy import systems
+
+
+@dataclass(frozen=True)
+class Draw:
+    """One simulated case: observed data, the truth and the hidden series."""
+
+    family: str
+    params: dict[str, float]
+    t: np.ndarray
+    observed: np.ndarray  # (T, n_observed), noisy
+    observed_clean: np.ndarray
+    observed_names: tuple[str, ...]
+    hidden_true: np.ndarray  # (T, n_true_hidden), noise-free
+    truth: dict[str, Any]  # "rhs": {name: expr}, "hidden": [symbols], "values": {sym: float}
+    natural: tuple  # the hidden states in latentsindy's terms (see _scoring.definitions)
+
+
+@dataclass(frozen=True)
+class Family:
+    name: str
+    description: str
+    library: Any  # a callable returning a fresh pysindy library
+    draw: Any  # (rng, noise, seed) -> Draw
+
+
+def _sym(names):
+    return [sp.Symbol(n, real=True) for n in names]
+
+
+# --------------------------------------------------------------------- Lotka-Volterra
+def _lotka_volterra(rng, noise, seed):
+    p = {"alpha": rng.uniform(0.6, 1.4), "beta": rng.uniform(0.05, 0.2),
+         "gamma": rng.uniform(0.6, 1.6), "delta": rng.uniform(0.02, 0.1)}
+    x_eq, y_eq = p["gamma"] / p["delta"], p["alpha"] / p["beta"]
+    x0 = (x_eq * rng.uniform(0.25, 0.75), y_eq * rng.uniform(0.6, 1.4))
+    t_end = 5 * 2 * np.pi / np.sqrt(p["alpha"] * p["gamma"])
+    d = systems.lotka_volterra(p["alpha"], p["beta"], p["gamma"], p["delta"], t_end=t_end,
+                               n_times=2000, x0=x0, noise=noise, seed=seed)
+    x, y = _sym("xy")
+    a, b, g, dl = sp.symbols("alpha beta gamma delta", positive=True)
+    rhs = {x: a * x - b * x * y, y: -g * y + dl * x * y}
+    values = {a: p["alpha"], b: p["beta"], g: p["gamma"], dl: p["delta"]}
+    return Draw("lotka_volterra", p, d.t, d.x[:, :1], d.x_clean[:, :1], ("x",),
+                d.x_clean[:, 1:], {"rhs": rhs, "hidden": [y], "values": values},
+                (("x", "x"),))
+
+
+# ------------------------------------------------------- oscillators with a hidden B(t)
+def _oscillator(sigmoid):
+    def draw(rng, noise, seed):
+        A = -rng.uniform(2.0, 5.0)
+        phase = rng.uniform(0, 2 * np.pi)
+        x0 = (np.cos(phase), np.sin(phase))
+        x, y = _sym("xy")
+        sA = sp.Symbol("A")
+        if sigmoid:
+            t_end = 10.0
+            lo = rng.uniform(1.5, 2.5)
+            hi = lo + rng.choice([-1, 1]) * rng.uniform(0.5, 1.2)
+            rate, at = rng.uniform(0.8, 2.0), rng.uniform(0.35, 0.65) * t_end
+            B = systems.Sigmoid(lo, hi, at=at, sharpness=rate)
+            p = {"A": A, "low": lo, "high": hi, "rate": rate, "at": at}
+            b = sp.Symbol("B", real=True)
+            sl, sh, sr = sp.symbols("low high rate")
+            rhs = {x: sA * y, y: b * x, b: sr * (b - sl) * (sh - b) / (sh - sl)}
+            hidden = [b]
+            values = {sA: A, sl: lo, sh: hi, sr: rate}
+            natural = (("y", "x"),)
+        else:
+            t_end = 30.0
+            b0, amp = rng.uniform(2.0, 3.0), rng.uniform(0.3, 0.8)
+            omega, ph = rng.uniform(0.4, 0.8), rng.uniform(0, 2 * np.pi)
+            B = systems.Sinusoid(b0, amp, omega / (2 * np.pi), ph)
+            p = {"A": A, "offset": b0, "amplitude": amp, "omega": omega, "phase": ph}
+            b, c = sp.Symbol("B", real=True), sp.Symbol("C", real=True)
+            sb0, som = sp.symbols("b0 omega")
+            rhs = {x: sA * y, y: b * x, b: c, c: -som**2 * (b - sb0)}
+            hidden = [b, c]
+            values = {sA: A, sb0: b0, som: omega}
+            natural = (("y", "x"), "rate")
+        d = systems.harmonic_oscillator(A=A, B=B, t_end=t_end, n_times=2000, x0=x0,
+                                        noise=noise, seed=seed)
+        series = d.parameters["B"][:, None]
+        if not sigmoid:  # B and its rate
+            series = np.column_stack([series[:, 0], amp * omega * np.cos(omega * d.t + ph)])
+        return Draw("oscillator_" + ("logistic" if sigmoid else "sinusoid"), p, d.t, d.x,
+                    d.x_clean, ("x", "y"), series, {"rhs": rhs, "hidden": hidden,
+                                                   "values": values}, natural)
+    return draw
+
+
+# --------------------------------------------------------------- FitzHugh-Nagumo
+def _fitzhugh_nagumo(rng, noise, seed):
+    for _ in range(100):  # keep draws that oscillate (the rest sit at a fixed point)
+        p = {"a": rng.uniform(0.7, 0.9), "b": rng.uniform(0.6, 0.8),
+             "epsilon": rng.uniform(0.06, 0.12), "current": rng.uniform(0.2, 0.5)}
+        x0 = (rng.uniform(-2.0, 2.0), rng.uniform(-0.5, 1.5))
+        d = systems.fitzhugh_nagumo(p["a"], p["b"], p["epsilon"], p["current"],
+                                    t_end=12.0 / p["epsilon"], n_times=2000, x0=x0,
+                                    noise=noise, seed=seed)
+        tail = d.x_clean[len(d.t) // 2:, 0]
+        if tail.max() - tail.min() > 2.0:
+            break
+    v, w = _sym("vw")
+    a, b, e, c = sp.symbols("a b epsilon I")
+    rhs = {v: v - v**3 / 3 - w + c, w: e * (v + a - b * w)}
+    values = {a: p["a"], b: p["b"], e: p["epsilon"], c: p["current"]}
+    return Draw("fitzhugh_nagumo", p, d.t, d.x[:, :1], d.x_clean[:, :1], ("v",),
+                d.x_clean[:, 1:], {"rhs": rhs, "hidden": [w], "values": values},
+                (("v", "1"),))
+
+
+# ------------------------------------------------------------- Lorenz, z hidden
+def _lorenz_z(rng, noise, seed):
+    p = {"sigma": rng.uniform(8.0, 12.0), "rho": rng.uniform(24.0, 32.0),
+         "beta": rng.uniform(2.0, 3.2)}
+    start = (rng.uniform(-10, 10), rng.uniform(-10, 10), rng.uniform(15, 35))
+    burn = systems.lorenz(p["sigma"], p["rho"], p["beta"], t_end=10.0, n_times=1001,
+                          x0=start)
+    d = systems.lorenz(p["sigma"], p["rho"], p["beta"], t_end=20.0, n_times=2000,
+                       x0=burn.x_clean[-1], noise=noise, seed=seed)
+    x, y, z = _sym("xyz")
+    s, r, b = sp.symbols("sigma rho beta")
+    rhs = {x: s * (y - x), y: x * (r - z) - y, z: x * y - b * z}
+    values = {s: p["sigma"], r: p["rho"], b: p["beta"]}
+    return Draw("lorenz_z", p, d.t, d.x[:, :2], d.x_clean[:, :2], ("x", "y"),
+                d.x_clean[:, 2:], {"rhs": rhs, "hidden": [z], "values": values},
+                (("y", "x"),))
+
+
+# ------------------------------------------- one hidden state in two equations
+def _modulated(rng, noise, seed):
+    p = {"omega": rng.uniform(1.0, 2.0), "k": rng.uniform(0.5, 1.5),
+         "epsilon": rng.uniform(0.5, 1.5), "z0": rng.choice([-1, 1]) * rng.uniform(0.4, 0.8)}
+    phase = rng.uniform(0, 2 * np.pi)
+    d = systems.modulated_oscillator(omega=p["omega"], k=p["k"], epsilon=p["epsilon"],
+                                     x0=(np.cos(phase), np.sin(phase), p["z0"]),
+                                     t_end=40.0, n_times=2000, noise=noise, seed=seed)
+    x, y, z = _sym("xyz")
+    om, k, e = sp.symbols("omega k epsilon")
+    rhs = {x: z * x - om * y, y: om * x + k * z * y, z: e * (1 - x**2 - y**2)}
+    values = {om: p["omega"], k: p["k"], e: p["epsilon"]}
+    return Draw("modulated", p, d.t, d.x[:, :2], d.x_clean[:, :2], ("x", "y"),
+                d.x_clean[:, 2:], {"rhs": rhs, "hidden": [z], "values": values},
+                (("x", "x"),))
+
+
+FAMILIES = {
+    f.name: f for f in [
+        Family("lotka_volterra", "prey-only Lotka-Volterra (predator hidden)",
+               lambda: ps.PolynomialLibrary(degree=3, include_bias=False), _lotka_volterra),
+        Family("oscillator_logistic", "xdot = A y, ydot = B(t) x; B logistic, "
+               "Bdot = r (B - lo)(hi - B)/(hi - lo)",
+               lambda: ps.PolynomialLibrary(degree=2), _oscillator(True)),
+        Family("oscillator_sinusoid", "xdot = A y, ydot = B(t) x; B sinusoidal, "
+               "Bddot = -w^2 (B - b0) (two hidden states)",
+               lambda: ps.PolynomialLibrary(degree=2), _oscillator(False)),
+        Family("fitzhugh_nagumo", "FitzHugh-Nagumo, v observed: w is a hidden additive "
+               "input with its own ODE", lambda: ps.PolynomialLibrary(degree=3),
+               _fitzhugh_nagumo),
+        Family("lorenz_z", "Lorenz, x and y observed: the hidden z multiplies x",
+               lambda: ps.PolynomialLibrary(degree=2), _lorenz_z),
+        Family("modulated", "oscillator with a hidden growth rate z entering both "
+               "equations", lambda: ps.PolynomialLibrary(degree=2), _modulated),
+    ]
+}
+
+
+def draw(family: str, index: int, noise: float) -> Draw:
+    """Draw ``index`` of ``family`` (parameters depend on the index only, not the noise)."""
+    rng = np.random.default_rng([_seed(family), index])
+    return FAMILIES[family].draw(rng, noise, 1000 + index)
+
+
+def _seed(name: str) -> int:
+    return sum((k + 1) * ord(ch) for k, ch in enumerate(name))

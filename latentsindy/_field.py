@@ -1,0 +1,150 @@
+"""A closed system linear in its coefficients: ``dy_i/dt = sum_f coef[i, f] phi_f(y)``.
+
+Features are sympy expressions in the state symbols (the observed library's features
+times powers of hidden states, and the closure library's monomials). Monomials are
+evaluated from their exponents (a few batched tensor operations for any number of
+features); any other feature (Fourier, custom libraries) through sympy's lambdify. Both
+give the features and their gradients, which the refinement's sensitivity equations
+need.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import sympy as sp
+import torch
+
+
+@dataclass(frozen=True)
+class ParametricSystem:
+    """Structure and coefficients of a closed system.
+
+    Attributes
+    ----------
+    state_names : tuple of str
+        Observed states first, then hidden ones.
+    n_observed : int
+    features : tuple of sympy expressions
+        Candidate functions of the states (one column each).
+    coef : ndarray (n_states, n_features)
+        Coefficients; zero outside the structure.
+    free : ndarray of bool (n_states, n_features)
+        Coefficients that are estimated; the others stay as given (the hidden states'
+        scale: ``h`` *is* the coefficient of its term, so that coefficient is 1).
+    """
+
+    state_names: tuple[str, ...]
+    n_observed: int
+    features: tuple
+    coef: np.ndarray
+    free: np.ndarray
+
+    @property
+    def symbols(self) -> list[sp.Symbol]:
+        return [sp.Symbol(n, real=True) for n in self.state_names]
+
+    @property
+    def n_free(self) -> int:
+        return int(self.free.sum())
+
+    @property
+    def n_terms(self) -> int:
+        return int(((self.coef != 0) | self.free).sum())
+
+    def free_values(self) -> np.ndarray:
+        return self.coef[self.free]
+
+    def with_free(self, values) -> ParametricSystem:
+        coef = self.coef.copy()
+        coef[self.free] = np.asarray(values, dtype=float)
+        return ParametricSystem(self.state_names, self.n_observed, self.features, coef,
+                                self.free)
+
+    def rhs(self) -> dict:
+        """Sympy right-hand sides built from the coefficients and the features."""
+        out = {}
+        for i, name in enumerate(self.state_names):
+            expr = sp.Integer(0)
+            for c, f in zip(self.coef[i], self.features, strict=True):
+                if c != 0:
+                    expr += sp.Float(float(c)) * f
+            out[name] = expr
+        return out
+
+
+class FeatureMap:
+    """Features phi(y) and their gradients for batches of states, in torch."""
+
+    def __init__(self, features, symbols):
+        symbols = list(symbols)
+        self.n_states = len(symbols)
+        self.exponents = _exponents(features, symbols)
+        if self.exponents is None:
+            grads = [[sp.diff(f, s) for s in symbols] for f in features]
+            self._values = sp.lambdify(symbols, list(features), modules="torch")
+            self._grads = sp.lambdify(symbols, [g for row in grads for g in row],
+                                      modules="torch")
+            self.n_features = len(features)
+        else:
+            self.n_features = self.exponents.shape[0]
+            self.degree = int(self.exponents.max(initial=0))
+
+    def __call__(self, y: torch.Tensor, gradients: bool = True):
+        """``phi`` (..., F) and, if asked, ``dphi`` (..., F, n)."""
+        if self.exponents is None:
+            return self._lambdified(y, gradients)
+        e = torch.as_tensor(self.exponents, device=y.device)
+        # powers[..., s, d] = y_s ** d for d = 0..degree
+        powers = [torch.ones_like(y)]
+        for _ in range(self.degree):
+            powers.append(powers[-1] * y)
+        powers = torch.stack(powers, dim=-1)  # (..., n, D + 1)
+        idx = e.T.expand(*y.shape[:-1], *e.T.shape)  # (..., n, F)
+        factors = torch.gather(powers, -1, idx).transpose(-1, -2)  # (..., F, n)
+        phi = factors.prod(dim=-1)
+        if not gradients:
+            return phi, None
+        lower = torch.gather(powers, -1, (idx - 1).clamp_min(0)).transpose(-1, -2)
+        deriv = e.to(y.dtype) * lower  # d factor_s / d y_s, (..., F, n)
+        n = self.n_states
+        eye = torch.eye(n, dtype=torch.bool, device=y.device)
+        # product over s' of factors, with factor s replaced by its derivative
+        stacked = torch.where(eye, deriv[..., None, :], factors[..., None, :])
+        dphi = stacked.prod(dim=-1)  # (..., F, n)
+        return phi, dphi
+
+    def _lambdified(self, y, gradients):
+        cols = torch.unbind(y, dim=-1)
+        shape = y.shape[:-1]
+        phi = torch.stack([_full(v, shape, y) for v in self._values(*cols)], dim=-1)
+        if not gradients:
+            return phi, None
+        flat = [_full(v, shape, y) for v in self._grads(*cols)]
+        dphi = torch.stack(flat, dim=-1).reshape(*shape, self.n_features, self.n_states)
+        return phi, dphi
+
+
+def _full(value, shape, like):
+    if torch.is_tensor(value):
+        return value.expand(shape)
+    return torch.full(shape, float(value), dtype=like.dtype, device=like.device)
+
+
+def _exponents(features, symbols):
+    """Exponent matrix (F, n) when every feature is a monomial with coefficient 1."""
+    rows = []
+    for f in features:
+        f = sp.sympify(f)
+        if not f.free_symbols <= set(symbols):
+            return None
+        try:
+            poly = sp.Poly(f, *symbols)
+        except sp.PolynomialError:
+            return None
+        terms = poly.terms()
+        if len(terms) != 1 or terms[0][1] != 1:
+            return None
+        rows.append(terms[0][0])
+    return np.array(rows, dtype=np.int64).reshape(len(rows), len(symbols))

@@ -1,0 +1,293 @@
+"""Hidden series under a given structure: a varying-coefficient smoother.
+
+A structure says, for every observed equation, which library terms it has and how the
+hidden states enter: ``xdot_i = sum_j c_ij theta_j + sum_k theta_k (c_ik + sum_a
+W_ika h_a(t))``, where hidden state ``a`` *is* the coefficient of its pivot term
+(``W = 1``, ``c = 0`` there). Given the structure, the hidden series and the constants
+follow from penalised least squares on the derivatives: each h_a is piecewise linear on
+knots spaced at half the differentiator's window (the finest scale the derivatives
+resolve), with a penalty on its second differences (curvature, which does not shrink
+amplitudes) whose weight is the largest that still fits the derivatives as well as
+their noise allows (discrepancy principle). Loadings W of non-pivot terms are updated
+in alternation. Everything is sparse: cost and memory grow linearly with the series.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import scipy.sparse as sps
+from scipy.sparse.linalg import spsolve
+
+_LAMBDAS = np.logspace(-6, 4, 11)  # relative curvature weights searched
+_SLACK = 1.05  # accept a residual up to this factor above the attainable one
+
+
+@dataclass(frozen=True)
+class Structure:
+    """Terms of the observed equations and how hidden states enter them.
+
+    Attributes
+    ----------
+    support : bool array (n_observed, n_features)
+        Terms of each equation (constant or varying).
+    loadings : float array (n_observed, n_features, n_hidden)
+        Loading of each term's coefficient on each hidden state (0: constant term).
+    pivots : tuple of (equation, feature) index pairs, one per hidden state
+    """
+
+    support: np.ndarray
+    loadings: np.ndarray
+    pivots: tuple
+
+    @property
+    def n_hidden(self) -> int:
+        return len(self.pivots)
+
+    @property
+    def varying(self) -> np.ndarray:
+        return np.any(self.loadings != 0, axis=-1) & self.support
+
+    def key(self):
+        """A hashable description (support, which terms load on what, pivots)."""
+        return (self.support.tobytes(), (self.loadings != 0).tobytes(), self.pivots)
+
+
+@dataclass(frozen=True)
+class HiddenFit:
+    """Constants, loadings and hidden series that a structure implies."""
+
+    structure: Structure
+    constants: np.ndarray  # (n_observed, n_features); offsets of varying terms included
+    hidden: list  # (T, n_hidden) per trajectory
+    misfit: float  # weighted mean squared residual, in derivative-noise variances
+    roughness: float
+
+
+def single_term(n_observed, n_features, equation, feature, support):
+    """Structure with one hidden state: the coefficient of ``feature`` in ``equation``."""
+    loads = np.zeros((n_observed, n_features, 1))
+    loads[equation, feature, 0] = 1.0
+    sup = np.array(support, dtype=bool, copy=True)
+    sup[equation, feature] = True
+    return Structure(sup, loads, ((equation, feature),))
+
+
+def fit_hidden(structure, thetas, observed, times, sigma, spacing, iterations=3):
+    """Estimate constants, non-pivot loadings and hidden series for ``structure``.
+
+    Parameters
+    ----------
+    thetas : list over trajectories of (T, F)
+        The library on the (smoothed) observed states.
+    observed : list of (T, n)
+        The observed states as measured.
+    times : list of (T,)
+    sigma : (n,) measurement noise standard deviation of each observed state
+    spacing : int
+        Knot spacing in samples.
+    """
+    st = structure
+    data = _Data(thetas, observed, times, sigma, spacing)
+    for _ in range(iterations if np.any(_free_loadings(st)) else 1):
+        consts, hidden, misfit, rough = _solve(st, data)
+        if not np.any(_free_loadings(st)):
+            break
+        st = _update_loadings(st, data, hidden)
+    return HiddenFit(st, consts, hidden, misfit, rough)
+
+
+def prune_constants(fit, thetas, observed, times, sigma, spacing, threshold, free_rows):
+    """Drop constant terms that explain less than ``threshold`` of their equation's RMS
+    rate (normalised size), refitting until nothing changes (STLSQ with the smoother
+    inside). Rows not in ``free_rows`` keep their terms."""
+    theta_rms = np.sqrt(np.mean(np.vstack(thetas) ** 2, axis=0))
+    rate_rms = np.sqrt(np.mean(np.vstack([np.gradient(x, t, axis=0) for x, t in
+                                          zip(observed, times, strict=True)]) ** 2, axis=0))
+    for _ in range(10):
+        st = fit.structure
+        size = np.abs(fit.constants) * theta_rms[None, :] / np.maximum(rate_rms[:, None],
+                                                                       1e-300)
+        drop = st.support & ~st.varying & (size < threshold) & free_rows[:, None]
+        if not drop.any():
+            return fit
+        st = replace(st, support=st.support & ~drop)
+        fit = fit_hidden(st, thetas, observed, times, sigma, spacing)
+    return fit
+
+
+def _free_loadings(st):
+    free = st.loadings != 0
+    for a, (i, k) in enumerate(st.pivots):
+        free[i, k, a] = False
+    return free
+
+
+class _Data:
+    """Per trajectory: the segment-integral operator, anchors, knot interpolation."""
+
+    def __init__(self, thetas, observed, times, sigma, spacing):
+        self.thetas = [np.asarray(th, float) for th in thetas]
+        self.observed = [np.asarray(x, float) for x in observed]
+        self.sigma = np.asarray(sigma, float)
+        self.n_obs = self.observed[0].shape[1]
+        length = int(np.clip(4 * spacing, 16, 200))
+        self.integral, self.anchors, self.interp = [], [], []
+        for x, t in zip(self.observed, times, strict=True):
+            n = len(x)
+            seg = np.minimum(np.arange(n) // length, max((n - 1) // length, 0))
+            if n - np.searchsorted(seg, seg[-1]) < length // 2 and seg[-1] > 0:
+                seg[seg == seg[-1]] = seg[-1] - 1  # no short last segment
+            half = np.diff(np.asarray(t, float)) / 2
+            trap = sps.diags([np.append(half, 0.0), half], [0, 1], shape=(n - 1, n))
+            # cumulative sum of the increments since the start of each segment
+            rows, cols = [], []
+            for s0 in np.flatnonzero(np.r_[True, seg[1:] != seg[:-1]]):
+                s1 = int(np.searchsorted(seg, seg[s0], side="right"))
+                r, c = np.tril_indices(s1 - s0 - 1)
+                rows.append(s0 + 1 + r)
+                cols.append(s0 + c)
+            rows, cols = np.concatenate(rows), np.concatenate(cols)
+            cum = sps.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n - 1))
+            self.integral.append((cum @ trap).tocsr())
+            self.anchors.append(sps.csr_matrix((np.ones(n), (np.arange(n), seg)),
+                                               shape=(n, int(seg.max()) + 1)))
+            self.interp.append(_knots(n, spacing)[1])
+        self.n_rows = sum(x.size for x in self.observed)
+        self.n_anchors = sum(a.shape[1] for a in self.anchors) * self.n_obs
+
+    def target(self):
+        return np.concatenate([(x / self.sigma).T.ravel() for x in self.observed])
+
+
+def _knots(n_times, spacing):
+    """Knot positions (sample indices) and the (T, K) linear interpolation matrix."""
+    knots = np.unique(np.concatenate([np.arange(0, n_times, max(1, spacing)), [n_times - 1]]))
+    j = np.clip(np.searchsorted(knots, np.arange(n_times), side="right") - 1, 0,
+                len(knots) - 2)
+    w = (np.arange(n_times) - knots[j]) / (knots[j + 1] - knots[j])
+    rows = np.repeat(np.arange(n_times), 2)
+    cols = np.stack([j, j + 1], axis=1).ravel()
+    vals = np.stack([1 - w, w], axis=1).ravel()
+    return knots, sps.csr_matrix((vals, (rows, cols)), shape=(n_times, len(knots)))
+
+
+def _design(st, data: _Data):
+    """Weighted design: rows (trajectory, equation, sample); columns [constants | knots
+    of each hidden state per trajectory | anchors per trajectory, equation, segment]."""
+    n_obs, n_feat = st.support.shape
+    const_idx = [(i, j) for i in range(n_obs) for j in range(n_feat)
+                 if st.support[i, j] and (i, j) not in st.pivots]
+    n_knots = [b.shape[1] for b in data.interp]
+    n_anch = [a.shape[1] for a in data.anchors]
+    n_hid = st.n_hidden
+    total_knots = sum(n_knots) * n_hid
+    blocks = []
+    k_off, a_off = 0, 0
+    for k, (th, q, anchors, interp) in enumerate(zip(data.thetas, data.integral, data.anchors,
+                                                    data.interp, strict=True)):
+        for i in range(n_obs):
+            inv = 1.0 / data.sigma[i]
+            c = np.zeros((len(th), len(const_idx)))
+            for col, (ii, j) in enumerate(const_idx):
+                if ii == i:
+                    c[:, col] = q @ th[:, j] * inv
+            hid = [sps.csr_matrix((len(th), k_off))]
+            for a in range(n_hid):
+                g = (th * st.loadings[i, :, a][None, :]).sum(axis=1)
+                hid.append((q @ sps.diags(g) @ interp) * inv)
+            hid.append(sps.csr_matrix((len(th), total_knots - k_off - n_hid * n_knots[k])))
+            anch = [sps.csr_matrix((len(th), a_off)), anchors * inv,
+                    sps.csr_matrix((len(th), sum(n_anch) * n_obs - a_off - n_anch[k]))]
+            blocks.append(sps.hstack([sps.csr_matrix(c), *hid, *anch]))
+            a_off += n_anch[k]
+        k_off += n_hid * n_knots[k]
+    design = sps.vstack(blocks).tocsc()
+    penalty = [sps.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(max(nk - 2, 0), nk))
+               for nk in n_knots for _a in range(n_hid)]
+    pen = None
+    if penalty and total_knots:
+        pen = sps.block_diag(penalty, format="csc")
+        pen = sps.hstack([sps.csc_matrix((pen.shape[0], len(const_idx))), pen,
+                          sps.csc_matrix((pen.shape[0], sum(n_anch) * n_obs))]).tocsc()
+    return design, pen, const_idx, n_knots
+
+
+def _solve(st, data: _Data):
+    design, pen, const_idx, n_knots = _design(st, data)
+    target = data.target()
+    gram = (design.T @ design).tocsc()
+    rhs = design.T @ target
+    n_eff = max(data.n_rows - data.n_anchors - len(const_idx), 1)
+    if pen is None or pen.shape[0] == 0:
+        sol = _sparse_solve(gram, rhs)
+        misfit = float(np.sum((design @ sol - target) ** 2)) / n_eff
+        rough = 0.0
+    else:
+        pgram = (pen.T @ pen).tocsc()
+        knots = slice(len(const_idx), len(const_idx) + sum(n_knots) * st.n_hidden)
+        scale = gram.diagonal()[knots].mean() / max(pgram.diagonal()[knots].mean(), 1e-300)
+        results = []
+        for lam in _LAMBDAS:  # from rough to smooth
+            sol = _sparse_solve(gram + lam * scale * pgram, rhs)
+            results.append((sol, float(np.sum((design @ sol - target) ** 2)) / n_eff))
+        best = min(r[1] for r in results)
+        # white measurement noise: the misfit of a right model is about 1, and
+        # fluctuates by sqrt(2 / n); take the smoothest series within that
+        limit = max(best, 1.0) * (1.0 + 2.0 * np.sqrt(2.0 / n_eff))
+        sol, misfit = [r for r in results if r[1] <= limit][-1]
+        rough = float(np.sum((pen @ sol) ** 2))
+    consts = np.zeros(st.support.shape)
+    for col, (i, j) in enumerate(const_idx):
+        consts[i, j] = sol[col]
+    hidden, pos = [], len(const_idx)
+    for interp, nk in zip(data.interp, n_knots, strict=True):
+        cols = []
+        for _a in range(st.n_hidden):
+            cols.append(interp @ sol[pos:pos + nk])
+            pos += nk
+        hidden.append(np.column_stack(cols) if cols else np.zeros((interp.shape[0], 0)))
+    return consts, hidden, misfit, rough
+
+
+def _update_loadings(st, data: _Data, hidden):
+    """Least squares of the loadings of non-pivot varying terms (with the constants and
+    anchors of their equations) given the hidden series."""
+    free = _free_loadings(st)
+    loads = st.loadings.copy()
+    for i in range(st.support.shape[0]):
+        if not free[i].any():
+            continue
+        const = [j for j in np.flatnonzero(st.support[i]) if (i, j) not in st.pivots]
+        pairs = [tuple(p) for p in np.argwhere(free[i])]
+        blocks, targets = [], []
+        n_anch = sum(a.shape[1] for a in data.anchors)
+        a_off = 0
+        for th, x, q, anchors, h in zip(data.thetas, data.observed, data.integral,
+                                        data.anchors, hidden, strict=True):
+            fixed = np.zeros(len(th))
+            for a, (pi, pk) in enumerate(st.pivots):
+                if pi == i:
+                    fixed += th[:, pk] * h[:, a]
+            cols = [q @ th[:, j] for j in const] + [q @ (th[:, k] * h[:, a]) for k, a in pairs]
+            dense = np.column_stack(cols)
+            anch = sps.hstack([sps.csr_matrix((len(th), a_off)), anchors,
+                               sps.csr_matrix((len(th), n_anch - a_off - anchors.shape[1]))])
+            blocks.append(sps.hstack([sps.csr_matrix(dense), anch]))
+            targets.append(x[:, i] - q @ fixed)
+            a_off += anchors.shape[1]
+        a_mat = sps.vstack(blocks).tocsc()
+        coef = _sparse_solve((a_mat.T @ a_mat).tocsc(), a_mat.T @ np.concatenate(targets))
+        for (k, a), value in zip(pairs, coef[len(const):len(const) + len(pairs)], strict=True):
+            loads[i, k, a] = value
+    return replace(st, loadings=loads)
+
+
+def _sparse_solve(matrix, rhs):
+    """Solve with Jacobi scaling (columns of very different sizes, e.g. x and x^3) and a
+    tiny ridge."""
+    d = 1.0 / np.sqrt(np.maximum(matrix.diagonal(), 1e-300))
+    scaled = sps.diags(d) @ matrix @ sps.diags(d)
+    scaled = scaled + 1e-10 * sps.identity(matrix.shape[0], format="csc")
+    return d * spsolve(scaled.tocsc(), d * rhs)
