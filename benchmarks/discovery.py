@@ -184,7 +184,7 @@ def run_one(family, index, noise, verbose=False):
                                      feature_names=list(d.observed_names), verbose=verbose)
         row["wall"] = time.perf_counter() - start
         row.update(score(result, d))
-        row["uncertain"] = bool(getattr(result, "structure_uncertain", False))
+        row["uncertain"] = bool(result.uncertain)
         row["summary"] = result.summary()
     except Exception as err:  # noqa: BLE001 - a failure is a benchmark outcome
         row.update(wall=time.perf_counter() - start, failed=f"{type(err).__name__}: {err}",

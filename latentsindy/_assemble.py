@@ -114,11 +114,19 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, notes):
 
     alternatives = tuple(alt(v) for v in ordered[1:])
     unsure = tuple(alt(v) for v in uncertain)
+    notes = list(notes) + _static_notes(terms, names)
     return HiddenDiscovery(
         ctx.times[0], ctx.observed[0], hidden[0], stds[0][:, system.n_observed:],
         tuple(observed), tuple(names), states, terms, coefs, best.cv, best.cv_se,
         alternatives, unsure, refinement, tuple(notes), list(ctx.times), list(ctx.observed),
         hidden, [np.asarray(h) for h in best.proposal.hidden], trajectories[0][0].copy())
+
+
+def _static_notes(terms, names):
+    """A hidden state whose equation is empty is a constant: say so."""
+    moving = {t.state for t in terms if t.value != 0}
+    return [f"{n} has no dynamics of its own (d{n}/dt = 0): it acts as a constant, so "
+            "these data need no hidden variable there" for n in names if n not in moving]
 
 
 def best_initial(verdict):

@@ -11,6 +11,7 @@ import numpy as np
 N_FOLDS = 5
 TOLERANCE = 0.05  # a sparser model is accepted within max(1 standard error, 5%) of the best
 N_THRESHOLDS = 30
+UNINFORMATIVE = 0.9  # held-out error (relative to the variance) of a useless closure
 
 
 @dataclass(frozen=True)
@@ -50,7 +51,9 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
 
     Candidate supports come from STLSQ on the pointwise derivatives and are scored on
     them (pointwise rows are nearly independent, so the held-out error is an honest
-    judge of extra terms); the final coefficients (least squares on the chosen
+    judge of extra terms); when those rates are so noisy that no support predicts
+    held-out rates, the path is run on the integral form below instead. The final
+    coefficients (least squares on the chosen
     support) use the integral form: ``h(t + span) - h(t)`` against the integral of
     the library over the same interval (trapezoid), on every interval of ``span``
     samples. That needs no derivative of h and averages out errors of h on scales
@@ -66,12 +69,26 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
     thetas = [np.asarray(a, dtype=float) for a in lib.transform(states)]
     target = np.vstack([np.asarray(d, dtype=float) for d in hidden_dot])
     candidates = path(np.vstack(thetas), target)
-    best = min(candidates, key=lambda c: c[2])
-    limit = best[2] + max(best[3], TOLERANCE * best[2])
-    chosen = min((c for c in candidates if c[2] <= limit), key=lambda c: (c[1], c[2]))
+    chosen = _one_standard_error(candidates)
+    if chosen[2] >= UNINFORMATIVE and span > 1:
+        # pointwise rates too noisy for any term to predict held-out data: select in
+        # integral form, which averages the noise over the span
+        weak = path(np.vstack([_integrals(a, tk, span) for a, tk in zip(thetas, times,
+                                                                        strict=True)]),
+                    np.vstack([h[span:] - h[:-span] for h in hidden]))
+        if _one_standard_error(weak)[2] < UNINFORMATIVE:
+            candidates = weak
+            chosen = _one_standard_error(weak)
     coef = refit_integral(chosen[4] != 0, thetas, hidden, times, span)
     table = [(c[0], c[1], c[2]) for c in candidates]
     return ClosureFit(coef, names, lib, chosen[2], table)
+
+
+def _one_standard_error(candidates):
+    """The sparsest candidate within one standard error (at least 5%) of the best."""
+    best = min(candidates, key=lambda c: c[2])
+    limit = best[2] + max(best[3], TOLERANCE * best[2])
+    return min((c for c in candidates if c[2] <= limit), key=lambda c: (c[1], c[2]))
 
 
 def fit_rate_closure(base, rate, observed, times, library, names, span) -> ClosureFit:
@@ -94,9 +111,7 @@ def fit_rate_closure(base, rate, observed, times, library, names, span) -> Closu
         targets.append(b[2 * half:] - 2 * b[half:-half] + b[:-2 * half])
     theta, target = np.vstack(rows), np.vstack(targets)
     candidates = path(theta, target)
-    best = min(candidates, key=lambda c: c[2])
-    limit = best[2] + max(best[3], TOLERANCE * best[2])
-    chosen = min((c for c in candidates if c[2] <= limit), key=lambda c: (c[1], c[2]))
+    chosen = _one_standard_error(candidates)
     return ClosureFit(chosen[4], feature_names, lib, chosen[2],
                       [(c[0], c[1], c[2]) for c in candidates])
 

@@ -125,8 +125,9 @@ class HiddenDiscovery:
     alternatives : tuple of Alternative
         The other structures considered, best first.
     uncertain : tuple of Alternative
-        Structures no larger than this one that explain the data equally well (score
-        within one standard error): the data cannot tell them apart.
+        Structures with other hidden states (other carriers, another number of hidden
+        states) that explain the data equally well (score within one standard error):
+        the data cannot tell them apart; the simplest one is reported.
     refinement : Refinement or None
     coefficients : CoefficientSeries
         Stage one's result (first trajectory).
@@ -268,8 +269,8 @@ class HiddenDiscovery:
             lines.append(f"  held-out score {self.score:.4g} +- {self.score_se:.2g} "
                          "(noise variances; ~1: reproduces unseen data down to its noise)")
         if self.uncertain:
-            lines.append("  STRUCTURE UNCERTAIN: these explain the data equally well (score "
-                         "within one standard error, no larger):")
+            lines.append("  STRUCTURE UNCERTAIN: these hidden states explain the data equally "
+                         "well (score within one standard error; the simplest is shown above):")
             for alt in self.uncertain:
                 lines.append(f"    - {alt.description}: score {alt.score:.4g} +- "
                              f"{alt.score_se:.2g}, {alt.size} parameters")

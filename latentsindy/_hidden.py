@@ -23,7 +23,7 @@ from ._estimator import DynamicSINDy, _free_rows
 from ._hypotheses import Context, evaluate, propose
 from ._judge import judge_all
 from ._library import check_library, feature_expressions, fit_library
-from ._refine import NOISE_FLOOR, RefineOptions
+from ._refine import NOISE_FLOOR, RefineOptions, single_thread
 from ._smoother import Structure
 
 VARIATION_SIGMAS = 3.0  # variation must exceed this many posterior std ...
@@ -124,8 +124,9 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         proposals = [evaluate(_named_structure(first.support, index), ctx, "hidden_terms")]
     notes = []
     if refine:
-        ordered, uncertain = judge_all(proposals, ctx, RefineOptions())
-        result = from_verdicts(ordered, uncertain, ctx, first, hidden_names, notes)
+        with single_thread():
+            ordered, uncertain = judge_all(proposals, ctx, RefineOptions())
+            result = from_verdicts(ordered, uncertain, ctx, first, hidden_names, notes)
     else:
         stds = {ij: first.std[:, ij[0], ij[1]] for ij in index}
         result = from_proposals(proposals, ctx, first, hidden_names, notes, stds)
@@ -151,8 +152,16 @@ def _context(fits, trajs, times, names, first, closure_library, support):
     return Context(tuple(names), tuple(first.feature_names),
                    tuple(feature_expressions(library, first.feature_names, names)),
                    [np.asarray(tk, float) for tk in times], [np.asarray(x) for x in trajs],
-                   smoothed, thetas, sigma, max(1, span // 2), span,
+                   smoothed, thetas, sigma, _knot_spacing(span, trajs), span,
                    _free_rows(support, names), THRESHOLD, closure_library)
+
+
+def _knot_spacing(span, trajs, max_knots=400):
+    """Knots of the hidden series every half differentiator window (the finest scale
+    the data resolve), but at most ``max_knots`` per series (a hidden state of an ODE
+    does not need more, and the smoother's cost grows with them)."""
+    longest = max(len(x) for x in trajs)
+    return int(max(1, span // 2, -(-longest // max_knots)))
 
 
 def _named_structure(support, index):

@@ -30,7 +30,7 @@ from ._derivatives import AdaptiveSavitzkyGolay
 from ._smoother import HiddenFit, Structure, fit_hidden, single_term
 
 MAX_RANK = 3  # at most this many hidden states from shared variation
-KEEP = 3  # proposals passed on to the judge
+KEEP = 3  # proposals passed on to the judge besides the ones always judged
 IMPROVE = 0.8  # a constant-term move must cut the closure error by 20%
 
 
@@ -114,10 +114,11 @@ def propose(ctx: Context, support, varying_pairs, series):
         if key not in proposals or p.score < proposals[key].score:
             proposals[key] = p
 
-    own = []  # stage one's own structures are always judged
+    first = []  # always judged: stage one's own structure, and per equation the carrier
+    # whose series fits the data best and the one whose series closes best
     for structure in _shared(support, varying_pairs, series):
         p = evaluate(structure, ctx, "stage one")
-        own.append(p)
+        first.append(p) if not first else None
         add(p)
         add(improve_constants(p, ctx))
     equations = sorted({i for i, _ in varying_pairs})
@@ -128,17 +129,23 @@ def propose(ctx: Context, support, varying_pairs, series):
         # the other equations keep stage one's terms as constants
         trials = _usable([evaluate(single_term(n_obs, n_feat, i, k, support), ctx, "carrier")
                           for k in range(n_feat)])
-        for p in trials[:2]:
+        fitting = min(trials, key=lambda p: p.fit.misfit)
+        for p in [trials[0], fitting] + trials[1:2]:
             add(p)
             add(improve_constants(p, ctx))
+        first += [trials[0], fitting]
         best_carrier[i] = trials[0]
     if len(best_carrier) > 1:  # variation in several equations: one hidden or several
         for structure in _across_equations(best_carrier, support):
             p = evaluate(structure, ctx, "shared")
             add(p)
             add(improve_constants(p, ctx))
-    ranked = _usable(list(proposals.values()))
-    chosen = own[:1] + [p for p in ranked if p is not own[0]][:KEEP] if own else ranked[:KEEP]
+    chosen = []
+    for p in first + _usable(list(proposals.values())):
+        if all(p.structure.key() != q.structure.key() or p.order != q.order for q in chosen):
+            chosen.append(p)
+        if len(chosen) >= len(first) + KEEP:
+            break
     return chosen
 
 
@@ -152,7 +159,7 @@ def _usable(proposals):
     return sorted(ok, key=lambda p: (p.score, p.structure.n_hidden))
 
 
-def improve_constants(p: Proposal, ctx: Context, max_moves: int = 4) -> Proposal:
+def improve_constants(p: Proposal, ctx: Context, max_moves: int = 3) -> Proposal:
     """Add or drop one constant term at a time in the equations with hidden states while
     that cuts the closure error by at least 20%."""
     rows = sorted({i for i, _ in p.structure.pivots} | {

@@ -2,13 +2,11 @@
 
 For a proposal (:mod:`latentsindy._hypotheses`) the closed system is assembled from
 structure (observed terms, hidden states' loadings, the closure's terms), then refined
-by multiple shooting (:mod:`latentsindy._refine`) and its terms selected stepwise on
-the integrated likelihood: a term is dropped when its Wald statistic ``z^2`` and added
-when its score statistic (the misfit it would remove) falls below / exceeds
-``log(n)``, the BIC price of a parameter. Last, interleaved held-out segments give its
-score. Among all proposals the sparsest one whose score is within one standard error
-of the best wins; proposals of the same size within that band make the result
-uncertain, and the summary says so.
+by multiple shooting (:mod:`latentsindy._refine`) and its terms selected on the
+integrated likelihood (:mod:`latentsindy._terms`: drops, additions and swaps scored by
+BIC). Last, interleaved held-out segments give its score. Among all proposals the
+sparsest one whose score is within one standard error of the best wins; proposals of
+the same size within that band make the result uncertain, and the summary says so.
 """
 
 from __future__ import annotations
@@ -16,8 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sps
-import scipy.sparse.linalg as spla
 import sympy as sp
 
 from ._field import ParametricSystem
@@ -25,8 +21,8 @@ from ._hypotheses import Context, Proposal, close
 from ._library import feature_expressions
 from ._refine import Fit, Problem, RefineOptions, cross_validate
 from ._shooting import BlowUp
+from ._terms import select_terms
 
-MAX_STEPS = 12
 RATE_TRIGGER = 1.5  # best misfit (noise variances) above which rate states are tried
 TIE = 0.05  # held-out misfits below this (noise variances) cannot be told apart
 
@@ -137,7 +133,7 @@ def _first_fit(p: Proposal, ctx: Context, options) -> _Trial | None:
 def _finish(trial: _Trial) -> Verdict:
     """Stepwise selection and the held-out score of a refined proposal."""
     try:
-        fit, history = stepwise(trial.problem, trial.fit, trial.candidates)
+        fit, history = select_terms(trial.problem, trial.fit, trial.candidates)
         cv, se, _ = cross_validate(trial.problem, fit)
     except BlowUp:
         return _unscored(trial, "blew up")
@@ -176,83 +172,12 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None):
     return rank(verdicts)
 
 
-def stepwise(problem: Problem, fit: Fit, candidates, max_steps=MAX_STEPS):
-    """Drop the weakest term while z^2 < log(n); add the best candidate while its score
-    statistic exceeds log(n). Returns the final fit and the moves made."""
-    price = float(np.log(max(problem.n_data, 2)))
-    history, dropped, added = [], set(), set()
-    for _ in range(max_steps):
-        system = fit.system
-        # never trust residuals below the noise level (exact data leave only the
-        # integrator's systematic error, which extra terms would chase)
-        s2 = max(fit.residual_variance, 1.0)
-        values = system.free_values()
-        se = np.sqrt(np.maximum(np.diag(fit.covariance), 0.0) * s2)
-        cells = list(zip(*np.nonzero(system.free), strict=True))
-        if cells:
-            z2 = np.where(se > 0, (values / np.where(se > 0, se, 1.0)) ** 2, np.inf)
-            z2[[c in added for c in cells]] = np.inf  # no cycles: added terms stay
-            k = int(np.argmin(z2))
-            if z2[k] < price:
-                cell = cells[k]
-                free = system.free.copy()
-                free[cell] = False
-                coef = system.coef.copy()
-                coef[cell] = 0.0
-                fit = problem.fit(ParametricSystem(system.state_names, system.n_observed,
-                                                   system.features, coef, free), fit.starts)
-                dropped.add(cell)
-                history.append(("drop", cell, float(z2[k])))
-                continue
-        allowed = candidates & ~system.free
-        for cell in dropped:
-            allowed[cell] = False
-        if not allowed.any():
-            break
-        gains = score_statistics(problem, fit, allowed)
-        cell, gain = max(gains.items(), key=lambda kv: kv[1])
-        if gain / s2 <= price:
-            break
-        free = system.free.copy()
-        free[cell] = True
-        fit = problem.fit(ParametricSystem(system.state_names, system.n_observed,
-                                           system.features, system.coef, free), fit.starts)
-        added.add(cell)
-        history.append(("add", cell, float(gain / s2)))
-    return fit, history
-
-
-def score_statistics(problem: Problem, fit: Fit, allowed):
-    """For every allowed cell: the decrease of the misfit (noise units) that freeing that
-    coefficient alone would bring, to first order (Lagrange multiplier test)."""
-    system = fit.system
-    free = system.free | allowed
-    aug = ParametricSystem(system.state_names, system.n_observed, system.features,
-                           system.coef, free)
-    eq = problem.equations(aug, fit.starts, np.ones(problem.n_segments), fit.rho)
-    a = eq.matrix().tocsc()
-    g = eq.grad
-    cells = list(zip(*np.nonzero(free), strict=True))
-    cand = [k for k, c in enumerate(cells) if allowed[c]]
-    rest = np.setdiff1d(np.arange(a.shape[0]), cand)
-    a_rr = a[rest][:, rest]
-    ridge = 1e-10 * max(float(a_rr.diagonal().max()), 1e-300)
-    lu = spla.splu((a_rr + ridge * sps.identity(len(rest))).tocsc())
-    g_r = lu.solve(g[rest])
-    gains = {}
-    for k in cand:
-        col = a[rest, k].toarray().ravel()
-        v = lu.solve(col)
-        denom = float(a[k, k] - col @ v)
-        num = float(g[k] - col @ g_r)
-        gains[cells[k]] = num * num / denom if denom > 0 else 0.0
-    return gains
-
-
 def rank(verdicts):
     """Verdicts ordered by choice: the sparsest within one standard error of the best
-    score first; returns (ordered, uncertain) where ``uncertain`` lists the others of
-    the same size within that band (structures the data cannot tell apart)."""
+    score first; returns (ordered, uncertain) where ``uncertain`` lists the others in
+    that band whose hidden states are not a superset of the chosen one's (other
+    carriers): structures the data cannot tell apart. Systems in the band that only
+    add terms or hidden states to the chosen one are parsimony's call."""
     unique = []
     for v in sorted(verdicts, key=lambda v: (not v.scored, v.cv)):
         if not any(same_structure(v, u) for u in unique):
@@ -264,12 +189,30 @@ def rank(verdicts):
     best = min(finite, key=lambda v: v.cv)
     band = max(best.cv + best.cv_se, TIE)
     inside = [v for v in finite if v.cv <= band]
-    chosen = min(inside, key=lambda v: (v.size, v.cv))
+    # equal sizes: fewer terms in the observed equations first. A hidden state can be
+    # shifted by any function of the observed states that the library holds (prey-only
+    # LV: h + d x with xdot = x h + d x^2 is the same system, same size); the variable
+    # that needs the fewest observed terms is the one that carries the dynamics.
+    chosen = min(inside, key=lambda v: (v.size, _observed_terms(v), v.cv))
     rest = sorted([v for v in verdicts if v is not chosen],
                   key=lambda v: (v.cv > band, v.size if v.cv <= band else 0, v.cv))
-    uncertain = [v for v in inside if v is not chosen and v.size <= chosen.size
-                 and not same_structure(v, chosen)]
+    ids = {id(v) for v in inside}
+    uncertain = [v for v in rest if id(v) in ids and not _extends(v, chosen)]
     return [chosen] + rest, uncertain
+
+
+def _observed_terms(v):
+    system = v.system
+    rows = slice(0, getattr(system, "n_observed", 0))
+    return int(((system.coef[rows] != 0) | system.free[rows]).sum())
+
+
+def _extends(v, chosen):
+    """Whether ``v``'s hidden states include all of ``chosen``'s (same defining terms,
+    at least the same order): then ``v`` is the chosen system with more in it, and
+    parsimony, not uncertainty, decides between them."""
+    a, b = v.proposal, chosen.proposal
+    return set(b.structure.pivots) <= set(a.structure.pivots) and a.order >= b.order
 
 
 def same_structure(a: Verdict, b: Verdict) -> bool:

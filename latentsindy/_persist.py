@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -153,7 +154,8 @@ def load(path) -> HiddenDiscovery:
         return _build(meta, arrays)
     except _Refused as err:
         raise ValueError(f"{path} cannot be loaded: {err}.") from None
-    except (KeyError, TypeError, AttributeError, json.JSONDecodeError, OSError) as err:
+    except (KeyError, TypeError, AttributeError, ValueError, OSError,
+            zipfile.BadZipFile) as err:
         raise ValueError(f"{path} cannot be loaded: missing or malformed entry "
                          f"({type(err).__name__}: {err}).") from None
 

@@ -109,6 +109,8 @@ def _simulate(rhs, x0, t, parameters, coefficient_noise, rng):
                   for k, v in series.items()}
 
     def at(ti):
+        if not coefficient_noise:  # the exact coefficient, not a piecewise-linear one
+            return {k: float(f(ti)) for k, f in parameters.items()}
         return {k: np.interp(ti, t, v) for k, v in series.items()}
 
     max_step = (t[-1] - t[0]) / 200.0

@@ -34,6 +34,19 @@ def check_lorenz(coefs, data):
         assert abs(coefs.term(state, feature).mean() / value - 1) < 0.05, (state, feature)
 
 
+@pytest.fixture(scope="session")
+def lv():
+    """Noise-free prey-only Lotka-Volterra at T=2000 (the tutorial), default settings."""
+    import pysindy as ps
+
+    from latentsindy import discover_hidden, systems
+
+    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000)
+    result = discover_hidden(data.x[:, :1], ps.PolynomialLibrary(degree=3, include_bias=False),
+                             t=data.t, feature_names=["x"], hidden_names=["h"], verbose=False)
+    return data, result
+
+
 @pytest.fixture
 def fast():
     """Training options for tests that check plumbing rather than accuracy."""

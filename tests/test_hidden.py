@@ -18,15 +18,6 @@ import oscillator  # noqa: E402
 X, H = sp.symbols("x h", real=True)
 
 
-@pytest.fixture(scope="module")
-def lv():
-    """Noise-free prey-only Lotka-Volterra at T=2000, default settings."""
-    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000)
-    result = discover_hidden(data.x[:, :1], ps.PolynomialLibrary(degree=3, include_bias=False),
-                             t=data.t, feature_names=["x"], hidden_names=["h"], verbose=False)
-    return data, result
-
-
 def test_lv_hidden_state_and_equation(lv):
     """Exact data: exact structure, hidden-equation coefficients within 0.1% (measured
     0.01%), the hidden state is the coefficient of x in dx/dt."""

@@ -1,0 +1,104 @@
+"""Result files: an exact round trip, and files that are refused without running anything."""
+
+import json
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from latentsindy import load
+from latentsindy._persist import from_tree, to_tree
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory, lv):
+    """The noise-free LV result (conftest's fixture), written once."""
+    _, result = lv
+    path = tmp_path_factory.mktemp("files") / "lv.npz"
+    result.save(path)
+    return result, path
+
+
+def test_round_trip_is_exact(saved):
+    result, path = saved
+    back = load(path)
+    assert back.state_names == result.state_names
+    assert back.hidden_states == result.hidden_states
+    for a, b in zip(back.terms, result.terms, strict=True):
+        assert (a.state, a.feature, a.value, a.fixed) == (b.state, b.feature, b.value, b.fixed)
+        assert a.stderr == b.stderr or (np.isnan(a.stderr) and np.isnan(b.stderr))
+    assert back.summary() == result.summary()
+    assert back.to_latex() == result.to_latex()
+    np.testing.assert_array_equal(back.hidden, result.hidden)
+    np.testing.assert_array_equal(back.hidden_std, result.hidden_std)
+    np.testing.assert_array_equal(back.coefficients.mean, result.coefficients.mean)
+    np.testing.assert_array_equal(back.initial_state, result.initial_state)
+    assert back.refinement == result.refinement
+    assert len(back.alternatives) == len(result.alternatives)
+    for a, b in zip(back.alternatives, result.alternatives, strict=True):
+        assert (a.description, a.status, a.size) == (b.description, b.status, b.size)
+        assert all(sp.expand(a.rhs[n] - b.rhs[n]) == 0 for n in b.rhs)
+
+
+def test_expression_trees_round_trip():
+    x, h = sp.symbols("x h", real=True)
+    expr = sp.Float(0.25) * x**3 - sp.Rational(1, 3) * h * sp.sin(x) + 7
+    assert from_tree(json.loads(json.dumps(to_tree(expr))), {"x": x, "h": h}) == expr
+    with pytest.raises(ValueError, match="Cannot store the expression"):
+        to_tree(sp.Symbol("x") + sp.Function("f")(sp.Symbol("x")))
+
+
+def _rewrite(path, target, edit):
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(str(arrays["meta"]))
+    edit(meta)
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez(target, **arrays)
+
+
+CODE = "__import__('os').system('touch {marker}')"
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda m, c: m["terms"][0].__setitem__("feature", ["Symbol", c]), "unknown symbol"),
+    (lambda m, c: m["terms"][0].__setitem__("feature", ["Function", c, []]),
+     "is not allowed"),
+    (lambda m, c: m["terms"][0].__setitem__("feature", ["Lambda", c]), "is not allowed"),
+    (lambda m, c: m["terms"][0].__setitem__("value", c), "not a number"),
+    (lambda m, c: m["terms"][0].__setitem__("feature", ["Integer", c]), "not an integer"),
+    (lambda m, c: m.__setitem__("hidden_names", [c]), "list of identifiers"),
+    (lambda m, c: m["terms"][0].__setitem__("state", c), "unknown state"),
+    (lambda m, c: m["hidden_states"][0].__setitem__("name", c), "not among the result"),
+], ids=["symbol", "function", "node", "value", "integer", "names", "state", "hidden"])
+def test_crafted_files_are_refused_and_run_nothing(saved, tmp_path, edit, message):
+    """Code placed in a text field of the file is refused with a ValueError that names
+    the file; nothing is executed (the marker file the code would create never
+    appears)."""
+    _, path = saved
+    marker = tmp_path / "executed"
+    bad = tmp_path / "crafted.npz"
+    _rewrite(path, bad, lambda m: edit(m, CODE.format(marker=marker)))
+    with pytest.raises(ValueError, match=message) as info:
+        load(bad)
+    assert str(bad) in str(info.value)
+    assert not marker.exists()
+
+
+def test_other_files_are_refused(tmp_path):
+    path = tmp_path / "other.npz"
+    np.savez(path, meta=np.array('{"format": "something"}'))
+    with pytest.raises(ValueError, match="not a saved HiddenDiscovery"):
+        load(path)
+    broken = tmp_path / "broken.npz"
+    broken.write_bytes(b"not a zip file")
+    with pytest.raises(ValueError, match="broken.npz cannot be loaded"):
+        load(broken)
+
+
+def test_missing_entries_are_refused(saved, tmp_path):
+    _, path = saved
+    bad = tmp_path / "partial.npz"
+    _rewrite(path, bad, lambda m: m.pop("terms"))
+    with pytest.raises(ValueError, match="missing or malformed entry"):
+        load(bad)
