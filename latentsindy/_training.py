@@ -13,7 +13,7 @@ from tqdm.auto import tqdm
 from ._selection import restore_absorbed_terms, restore_terms
 
 _EPS = torch.finfo(torch.float32).eps
-TV_SHARE = 0.5
+TV_SHARE = 0.5  # share of total variation in the roughness (see roughness)
 
 
 @dataclass(frozen=True)
@@ -203,13 +203,17 @@ def loss_terms(model, theta, xdot, weights, inputs, noise_var, threshold, free_r
 
 
 def roughness(track: torch.Tensor) -> torch.Tensor:
-    """Half the mean absolute second difference along time (dim 1), per trailing entry.
+    """Smoothness penalty of both generators, per trailing entry: half the mean absolute
+    second difference along time (dim 1) plus ``TV_SHARE`` of the mean absolute first
+    difference (total variation).
 
-    The smoothness prior of both generators. Unlike total variation it does not
-    penalise amplitude: flattening a peak or a trough does not lower it (the slope
-    still turns), so extrema are not clipped and a coefficient can follow a smooth
-    hidden state; a jump costs about what total variation charges (two slope changes
-    of half its size each), so switches stay sharp, and sample-to-sample noise is
+    Total variation alone penalises amplitude: it flattens peaks and troughs (on
+    prey-only LV at 1% noise the hidden state sat 0.059 above the true minima). Slope
+    changes do not: clipping a peak does not lower them. A pure slope-change penalty,
+    though, lets constant coefficients drift linearly (a constant oscillator's
+    coefficient drifted by 8.7%, and the switch and Lorenz bars failed), so half of the
+    total variation stays: minima now within 0.033, the other bars unchanged. A jump
+    costs 1.5 times what total variation alone charged; sample-to-sample noise is
     penalised as before.
     """
     if track.shape[1] < 3:
