@@ -6,7 +6,9 @@ std): one ``discover_hidden`` call with the family's library and nothing else se
 result is scored in its own variables against the truth moved into them
 (``_scoring.py``): the number of hidden states, extra and missing terms in every
 equation, the largest relative error of the hidden equations' coefficients, R^2 of the
-true hidden variables from the reported hidden series (best affine map), wall time.
+true hidden variables from the reported hidden series (best affine map), wall time, and
+how often a wrong structure was reported with confidence (``result.confident``: no
+equally good alternative and no failed check).
 
 * ratio baseline (prey-only Lotka-Volterra only): h = xdot / x from the same
   differentiator, then the same cross-validated closure with its integral refit.
@@ -185,10 +187,11 @@ def run_one(family, index, noise, verbose=False):
         row["wall"] = time.perf_counter() - start
         row.update(score(result, d))
         row["uncertain"] = bool(result.uncertain)
+        row["confident"] = result.confident
         row["summary"] = result.summary()
     except Exception as err:  # noqa: BLE001 - a failure is a benchmark outcome
         row.update(wall=time.perf_counter() - start, failed=f"{type(err).__name__}: {err}",
-                   exact=False, error=np.inf, r2=np.nan, n_hidden=0,
+                   exact=False, confident=False, error=np.inf, r2=np.nan, n_hidden=0,
                    n_hidden_true=len(d.truth["hidden"]))
         if verbose:
             traceback.print_exc()
@@ -204,8 +207,9 @@ def _pct(v):
 
 def table(rows):
     lines = ["| family | noise | draws | hidden states right | exact structure | hidden R^2 "
-             "median / worst | hidden-eq. error median / worst | ratio baseline median | "
-             "oracle median: closure / refined | wall median / max (s) |", "|---" * 10 + "|"]
+             "median / worst | hidden-eq. error median / worst | wrong yet confident | "
+             "ratio baseline median | oracle median: closure / refined | wall median / max (s) |",
+             "|---" * 11 + "|"]
     keys = sorted({(r["family"], r["noise"]) for r in rows},
                   key=lambda k: (list(FAMILIES).index(k[0]), k[1]))
     for fam, noise in keys:
@@ -219,10 +223,11 @@ def table(rows):
         orc = [r["oracle"]["error"] for r in rs]
         orc_r = [r["oracle"].get("refined_error", np.inf) for r in rs]
         walls = [r["wall"] for r in rs]
+        overconfident = sum(not r["exact"] and r.get("confident", True) for r in rs)
         lines.append(
             f"| {fam} | {noise:.0%} | {n} | {right}/{n} | {exact}/{n} | "
             f"{np.nanmedian(r2):.4f} / {np.nanmin(r2):.4f} | "
-            f"{_pct(np.median(err))} / {_pct(np.max(err))} | "
+            f"{_pct(np.median(err))} / {_pct(np.max(err))} | {overconfident}/{n} | "
             f"{_pct(np.median(ratio)) if ratio else '-'} | {_pct(np.median(orc))} / "
             f"{_pct(np.median(orc_r))} | {np.median(walls):.1f} / {np.max(walls):.1f} |")
     return "\n".join(lines)

@@ -128,6 +128,11 @@ class HiddenDiscovery:
         Structures with other hidden states (other carriers, another number of hidden
         states) that explain the data equally well (score within one standard error):
         the data cannot tell them apart; the simplest one is reported.
+    doubts : tuple of str
+        Checks the reported system failed, each saying what it means: it does not
+        reproduce held-out data down to their noise, its refinement did not converge,
+        or a hidden-equation coefficient is within two standard errors of zero.
+        Empty when every check passed.
     refinement : Refinement or None
     coefficients : CoefficientSeries
         Stage one's result (first trajectory).
@@ -153,8 +158,15 @@ class HiddenDiscovery:
     all_hidden: list = field(repr=False, default_factory=list)
     hidden_initial: list = field(repr=False, default_factory=list)
     initial_state: np.ndarray = field(repr=False, default=None)
+    doubts: tuple = ()
 
     # ----------------------------------------------------------- views
+    @property
+    def confident(self) -> bool:
+        """True when no other structure explains the data as well (``uncertain`` is
+        empty) and the reported system passed every check (``doubts`` is empty)."""
+        return not self.uncertain and not self.doubts
+
     @property
     def state_names(self) -> tuple[str, ...]:
         return self.observed_names + self.hidden_names
@@ -268,6 +280,7 @@ class HiddenDiscovery:
         if np.isfinite(self.score):
             lines.append(f"  held-out score {self.score:.4g} +- {self.score_se:.2g} "
                          "(noise variances; ~1: reproduces unseen data down to its noise)")
+        lines += [f"  DOUBT: {d}" for d in self.doubts]
         if self.uncertain:
             lines.append("  STRUCTURE UNCERTAIN: these hidden states explain the data equally "
                          "well (score within one standard error; the simplest is shown above):")

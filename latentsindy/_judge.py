@@ -3,7 +3,7 @@
 For a proposal (:mod:`latentsindy._hypotheses`) the closed system is assembled from
 structure (observed terms, hidden states' loadings, the closure's terms), then refined
 by multiple shooting (:mod:`latentsindy._refine`) and its terms selected on the
-integrated likelihood (:mod:`latentsindy._terms`: drops, additions and swaps scored by
+integrated likelihood (:mod:`latentsindy._terms`: drops, additions, swaps and merges scored by
 BIC). Last, interleaved held-out segments give its score. Among all proposals the
 sparsest one whose score is within one standard error of the best wins; proposals of
 the same size within that band make the result uncertain, and the summary says so.
@@ -21,7 +21,7 @@ from ._hypotheses import Context, Proposal, close
 from ._library import feature_expressions
 from ._refine import Fit, Problem, RefineOptions, cross_validate
 from ._shooting import BlowUp
-from ._terms import select_terms
+from ._terms import ambiguities, select_terms
 
 RATE_TRIGGER = 1.5  # best misfit (noise variances) above which rate states are tried
 TIE = 0.05  # held-out misfits below this (noise variances) cannot be told apart
@@ -38,6 +38,7 @@ class Verdict:
     cv_se: float
     history: tuple
     initial_misfit: float
+    candidates: np.ndarray | None = None
 
     @property
     def system(self) -> ParametricSystem:
@@ -138,7 +139,7 @@ def _finish(trial: _Trial) -> Verdict:
     except BlowUp:
         return _unscored(trial, "blew up")
     return Verdict(trial.proposal, fit, trial.problem, cv, se, tuple(history),
-                   trial.initial_misfit)
+                   trial.initial_misfit, trial.candidates)
 
 
 def _unscored(trial: _Trial, why: str) -> Verdict:
@@ -170,6 +171,17 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None):
         else:
             verdicts.append(_unscored(t, "rejected"))
     return rank(verdicts)
+
+
+def exchangeable_terms(verdict: Verdict):
+    """Terms of the chosen system that others could replace as well
+    (:func:`latentsindy._terms.ambiguities`): [(move, misfit change)]."""
+    if not verdict.scored or verdict.candidates is None:
+        return []
+    try:
+        return ambiguities(verdict.problem, verdict.fit, verdict.candidates)
+    except BlowUp:
+        return []
 
 
 def rank(verdicts):

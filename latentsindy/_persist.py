@@ -21,7 +21,8 @@ from ._discovery import Alternative, HiddenDiscovery, HiddenState, Refinement, T
 from ._results import CoefficientSeries
 
 FORMAT = "latentsindy.HiddenDiscovery"
-VERSION = 2
+VERSION = 3  # 3 added ``doubts``; version 2 files still load (no doubts)
+READABLE = (2, 3)
 _FUNCTIONS = {f.__name__: f for f in (sp.sin, sp.cos, sp.tan, sp.exp, sp.log, sp.tanh,
                                       sp.sinh, sp.cosh, sp.Abs)}
 
@@ -115,6 +116,7 @@ def save(result: HiddenDiscovery, path) -> None:
         "terms": [{"state": t.state, "feature": to_tree(t.feature), "value": t.value,
                    "stderr": t.stderr, "fixed": t.fixed} for t in result.terms],
         "score": result.score, "score_se": result.score_se, "notes": list(result.notes),
+        "doubts": list(result.doubts),
         "alternatives": [_alternative(a) for a in result.alternatives],
         "uncertain": [_alternative(a) for a in result.uncertain],
         "refinement": None if result.refinement is None else vars(result.refinement),
@@ -146,7 +148,7 @@ def load(path) -> HiddenDiscovery:
     try:
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"])) if "meta" in data.files else {}
-            if meta.get("format") != FORMAT or meta.get("version") != VERSION:
+            if meta.get("format") != FORMAT or meta.get("version") not in READABLE:
                 raise _Refused(f"not a saved HiddenDiscovery (format {meta.get('format')!r}, "
                                f"version {meta.get('version')!r}; expected {FORMAT!r}, "
                                f"version {VERSION})")
@@ -218,4 +220,4 @@ def _build(meta, arrays):
             "misfit_before", "misfit_after", "continuity_gap", "n_segments", "iterations",
             "status")}),
         tuple(str(s) for s in meta["notes"]), times, observed_series, hidden_series, initial,
-        arrays["initial_state"])
+        arrays["initial_state"], tuple(str(s) for s in meta.get("doubts", [])))

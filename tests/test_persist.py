@@ -34,10 +34,32 @@ def test_round_trip_is_exact(saved):
     np.testing.assert_array_equal(back.coefficients.mean, result.coefficients.mean)
     np.testing.assert_array_equal(back.initial_state, result.initial_state)
     assert back.refinement == result.refinement
+    assert back.doubts == result.doubts and back.confident == result.confident
     assert len(back.alternatives) == len(result.alternatives)
     for a, b in zip(back.alternatives, result.alternatives, strict=True):
         assert (a.description, a.status, a.size) == (b.description, b.status, b.size)
         assert all(sp.expand(a.rhs[n] - b.rhs[n]) == 0 for n in b.rhs)
+
+
+def test_doubts_round_trip_and_version_2_files_load(saved, tmp_path):
+    """A result's doubts survive the round trip; a version-2 file (before doubts) loads
+    with none."""
+    import dataclasses
+
+    result, _ = saved
+    doubted = dataclasses.replace(result, doubts=("a check failed",))
+    path = tmp_path / "doubted.npz"
+    doubted.save(path)
+    back = load(path)
+    assert back.doubts == ("a check failed",) and not back.confident
+    assert "DOUBT: a check failed" in back.summary()
+
+    def to_version_2(meta):
+        meta["version"] = 2
+        del meta["doubts"]
+
+    _rewrite(path, tmp_path / "v2.npz", to_version_2)
+    assert load(tmp_path / "v2.npz").doubts == ()
 
 
 def test_expression_trees_round_trip():

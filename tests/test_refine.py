@@ -1,6 +1,8 @@
 """Closed-loop refinement: features, multiple shooting, standard errors, term selection,
 held-out scores and the choice among structures, against analytic truth."""
 
+import dataclasses
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -9,11 +11,13 @@ import sympy as sp
 import torch
 
 from latentsindy import systems
+from latentsindy._assemble import doubts
+from latentsindy._discovery import Refinement, Term
 from latentsindy._field import FeatureMap, ParametricSystem
 from latentsindy._judge import rank
 from latentsindy._refine import Problem, cross_validate
 from latentsindy._shooting import BlowUp
-from latentsindy._terms import select_terms
+from latentsindy._terms import AMBIGUITY, ambiguities, select_terms
 
 X, Y, Z, H = sp.symbols("x y z h", real=True)
 A, B, G, D = 1.0, 0.1, 1.5, 0.075
@@ -166,3 +170,46 @@ def test_rank_prefers_the_smallest_within_one_standard_error():
     more.proposal.structure.pivots = ((0, 0), (1, 1))
     ordered, uncertain = rank([best, small, other, far, more])
     assert ordered[0] is small and uncertain == [other]
+
+
+def test_doubts_name_each_failed_check():
+    """A refined system is doubted when its held-out score is above the noise by more
+    than the slack (two standard errors), when refinement hit its iteration limit, and
+    for each hidden-equation coefficient within two standard errors of zero; a system
+    that passes all three has no doubts."""
+    ok = Refinement(0.1, 0.05, 0.0, 10, 5, "converged")
+    h = sp.Symbol("h", real=True)
+    terms = (Term("h", h, -1.5, 0.01, False), Term("x", h, 1.0, math.nan, True))
+    assert doubts(1.05, 0.03, ok, terms, ["h"]) == ()
+    assert doubts(1.2, 0.05, ok, terms, ["h"]) == ()  # within two standard errors
+    high = doubts(1.5, 0.05, ok, terms, ["h"])
+    assert len(high) == 1 and "does not reproduce held-out data" in high[0]
+    stopped = dataclasses.replace(ok, status="iteration_limit")
+    assert "iteration limit" in doubts(1.0, 0.03, stopped, terms, ["h"])[0]
+    weak = terms + (Term("h", h**2, 0.02, 0.015, False),)
+    found = doubts(1.0, 0.03, ok, weak, ["h"])
+    assert len(found) == 1 and "1 hidden-equation coefficient(s)" in found[0]
+    assert "dh/dt: h**2" in found[0]
+
+
+def test_ambiguities_report_a_term_the_data_cannot_tell_from_another():
+    """x and a near-copy of it, x (1 + 1e-4 x), cannot be told apart in the hidden
+    equation: swapping one for the other changes the misfit by less than AMBIGUITY.
+    The true terms against the library's other terms (h x^2) are told apart."""
+    data, guesses = lv_problem(0.01)
+    features = LV_FEATURES + (X * (1 + 1e-4 * X),)
+    coef = np.zeros((2, 6))
+    coef[0, 0] = 1.0
+    coef[1, :5] = TRUTH_ROW
+    free = np.zeros((2, 6), dtype=bool)
+    free[1, :4] = True
+    problem = Problem(ParametricSystem(("x", "h"), 1, features, coef, free), [data.t],
+                      [data.x[:, :1]], guesses)
+    fit = problem.fit()
+    candidates = np.zeros_like(free)
+    candidates[1, 4:] = True
+    found = ambiguities(problem, fit, candidates)
+    assert [move for move, _ in found] == [("swap", ((1, 3), (1, 5)))]
+    assert abs(found[0][1]) < AMBIGUITY
+    candidates[1, 5] = False
+    assert ambiguities(problem, fit, candidates) == []
