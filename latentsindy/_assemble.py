@@ -17,6 +17,9 @@ from ._judge import build, exchangeable_terms
 # score - 2 se was 1.07; a missing term or hidden state gives more.
 REPRODUCTION_SLACK = 0.15
 SIGNIFICANCE = 2.0  # a kept coefficient should be this many standard errors from zero
+NOT_CHECKED = ("not refined by integration (refine=False): the structure was chosen by its "
+               "closure's held-out error and was never checked by integrating it against "
+               "the data")
 
 
 def hidden_names(system, n_observed, given, observed):
@@ -122,13 +125,15 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, notes):
 
     alternatives = tuple(alt(v) for v in ordered[1:])
     unsure = tuple(alt(v) for v in uncertain)
+    # an unscored winner (every candidate blew up on held-out data) has no score
+    score, score_se = (best.cv, best.cv_se) if best.scored else (math.inf, math.nan)
     notes = list(notes) + _static_notes(terms, names)
     return HiddenDiscovery(
         ctx.times[0], ctx.observed[0], hidden[0], stds[0][:, system.n_observed:],
-        tuple(observed), tuple(names), states, terms, coefs, best.cv, best.cv_se,
+        tuple(observed), tuple(names), states, terms, coefs, score, score_se,
         alternatives, unsure, refinement, tuple(notes), list(ctx.times), list(ctx.observed),
         hidden, [np.asarray(h) for h in best.proposal.hidden], trajectories[0][0].copy(),
-        doubts(best.cv, best.cv_se, refinement, terms, names)
+        doubts(score, score_se, refinement, terms, names)
         + _exchanges(exchangeable_terms(best), system, rename, names_map))
 
 
@@ -143,15 +148,20 @@ def _exchanges(moves, system, rename, names_map):
     for (kind, (gone, new)), change in moves:
         gone = " and ".join(term(g) for g in gone) if kind != "swap" else term(gone)
         new = " and ".join(term(g) for g in new) if kind == "exchange" else term(new)
-        out.append(f"the data cannot tell {gone} from {new} (exchanging them changes "
-                   f"the misfit by {change:+.2g} noise variances): an equally good system")
+        what = ("a smaller system fits almost as well" if kind == "merge"
+                else "an equally good system")
+        out.append(f"the data cannot tell {gone} from {new} (exchanging them changes the "
+                   f"misfit by {change:+.2g} residual variances): {what}")
     return tuple(out)
 
 
 def doubts(score, score_se, refinement, terms, hidden):
     """The checks a refined system fails, each as a sentence with its remedy."""
     found = []
-    if score - SIGNIFICANCE * score_se > 1 + REPRODUCTION_SLACK:
+    if not (np.isfinite(score) and np.isfinite(score_se)):
+        found.append("the closed system could not be scored on held-out data (its "
+                     "integration blew up): it was not checked against the data")
+    elif score - SIGNIFICANCE * score_se > 1 + REPRODUCTION_SLACK:
         found.append(
             f"the closed system does not reproduce held-out data down to their noise (score "
             f"{score:.3g} +- {score_se:.2g}, expected ~1): a term or a hidden state is "
@@ -201,6 +211,7 @@ def from_proposals(proposals, ctx, coefs, given_names, notes, stage_one_std):
         alternatives.append(alternative(sys_p, ctx, p.structure.pivots, _describe_origin(p),
                                         math.nan, math.nan, sys_p.n_free, "not refined",
                                         given_names, observed))
+    notes = list(notes)
     std = np.full(hidden[0].shape, np.nan)
     for a, pivot in enumerate(best.structure.pivots):
         if pivot in stage_one_std:
@@ -209,7 +220,7 @@ def from_proposals(proposals, ctx, coefs, given_names, notes, stage_one_std):
         ctx.times[0], ctx.observed[0], hidden[0], std, tuple(observed), tuple(names), states,
         terms, coefs, math.nan, math.nan, tuple(alternatives), (), None, tuple(notes),
         list(ctx.times), list(ctx.observed), hidden, [np.asarray(h) for h in best.hidden],
-        np.asarray(guesses[0][0], dtype=float))
+        np.asarray(guesses[0][0], dtype=float), (NOT_CHECKED,))
 
 
 def _nrmse(trajectories, observed):

@@ -57,7 +57,12 @@ class Term:
 
 @dataclass(frozen=True)
 class Alternative:
-    """Another structure the judge considered, with its score."""
+    """Another structure the judge considered.
+
+    ``score`` is its held-out score when ``status`` is "scored"; for "rejected" (misfit
+    far above the best) and "blew up" it is the in-sample misfit (noise variances); for
+    "not refined" (``refine=False``) it is NaN.
+    """
 
     description: str
     rhs: dict
@@ -65,7 +70,7 @@ class Alternative:
     score: float
     score_se: float
     size: int
-    status: str  # "scored", "rejected" (misfit far above the best) or "blew up"
+    status: str  # "scored", "rejected" (misfit far above the best), "blew up", "not refined"
 
 
 @dataclass(frozen=True)
@@ -129,10 +134,15 @@ class HiddenDiscovery:
         states) that explain the data equally well (score within one standard error):
         the data cannot tell them apart; the simplest one is reported.
     doubts : tuple of str
-        Checks the reported system failed, each saying what it means: it does not
-        reproduce held-out data down to their noise, its refinement did not converge,
-        or a hidden-equation coefficient is within two standard errors of zero.
-        Empty when every check passed.
+        Checks the reported system failed, each a sentence saying what it means: it
+        could not be scored or does not reproduce held-out data down to their noise, its
+        refinement did not converge, a hidden-equation coefficient is within two
+        standard errors of zero, or a term can be exchanged for another with almost no
+        loss of fit. Without refinement (``refine=False``) nothing was checked, and that
+        is the doubt. Empty when every check passed.
+    notes : tuple of str
+        Remarks that are not doubts (a hidden state with no dynamics of its own, names
+        that could not be used).
     refinement : Refinement or None
     coefficients : CoefficientSeries
         Stage one's result (first trajectory).
@@ -163,9 +173,11 @@ class HiddenDiscovery:
     # ----------------------------------------------------------- views
     @property
     def confident(self) -> bool:
-        """True when no other structure explains the data as well (``uncertain`` is
-        empty) and the reported system passed every check (``doubts`` is empty)."""
-        return not self.uncertain and not self.doubts
+        """True when the reported system was checked by integration, no other
+        structure explains the data as well (``uncertain`` is empty) and it passed every
+        check (``doubts`` is empty). Read it before trusting an equation."""
+        return (self.refinement is not None and bool(np.isfinite(self.score))
+                and not self.uncertain and not self.doubts)
 
     @property
     def state_names(self) -> tuple[str, ...]:
@@ -203,20 +215,28 @@ class HiddenDiscovery:
 
     def equation(self, state: str) -> dict:
         """The terms of ``d state/dt`` as {feature (sympy expression): coefficient}."""
-        if state not in self.state_names:
-            raise KeyError(f"Unknown state {state!r}; states are {list(self.state_names)}.")
+        self._check_state(state)
         return {t.feature: t.value for t in self.terms if t.state == state and t.value != 0}
 
     def coefficient(self, state: str, feature) -> float:
         """Coefficient of ``feature`` (sympy expression or string such as ``"h*x"``) in
         ``d state/dt``; 0 if absent."""
+        self._check_state(state)
         expr = sp.sympify(feature, locals={n: s for n, s in zip(self.state_names, self.symbols,
                                                                  strict=True)}) \
-            if isinstance(feature, str) else feature
+            if isinstance(feature, str) else sp.sympify(feature)
+        unknown = {str(s) for s in expr.free_symbols} - set(self.state_names)
+        if unknown:
+            raise ValueError(f"feature {feature!r} uses {sorted(unknown)}, which are not states "
+                             f"of this system; states are {list(self.state_names)}.")
         for term in self.terms:
             if term.state == state and sp.expand(term.feature - expr) == 0:
                 return term.value
         return 0.0
+
+    def _check_state(self, state):
+        if state not in self.state_names:
+            raise ValueError(f"Unknown state {state!r}; states are {list(self.state_names)}.")
 
     def vector_field(self) -> VectorField:
         """The closed vector field ``f(t, y)`` for numpy arrays or torch tensors."""
@@ -261,6 +281,8 @@ class HiddenDiscovery:
         return "\\begin{aligned}\n" + " \\\\\n".join(lines) + "\n\\end{aligned}"
 
     def summary(self) -> str:
+        """The closed system, its coefficients with standard errors, how it was fitted
+        and judged, doubts, equally good alternatives (or the runner-up) and notes."""
         lines = [f"Closed system: {len(self.observed_names)} observed + "
                  f"{len(self.hidden_names)} hidden state(s)"]
         lines += [f"  hidden: {h.describe()}" for h in self.hidden_states]
@@ -290,8 +312,10 @@ class HiddenDiscovery:
                 lines += [f"        d{n}/dt = {_short(e)}" for n, e in alt.rhs.items()]
         elif self.alternatives:
             alt = self.alternatives[0]
-            lines.append(f"  runner-up: {alt.description}, score {alt.score:.4g} "
-                         f"({alt.status}), {alt.size} parameters")
+            what = "score" if alt.status == "scored" else "in-sample misfit"
+            value = f"{what} {alt.score:.4g} " if np.isfinite(alt.score) else ""
+            lines.append(f"  runner-up: {alt.description}, {value}({alt.status}), "
+                         f"{alt.size} parameters")
         lines += [f"  note: {n}" for n in self.notes]
         return "\n".join(lines)
 

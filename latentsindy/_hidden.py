@@ -49,8 +49,18 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     regression, refined by integrating the closed system against the observed data
     (multiple shooting, torchdiffeq), its terms selected stepwise on that fit, and
     scored on held-out segments; the sparsest system within one standard error of the
-    best score wins. Structures that are no larger and score as well are reported as
-    ``uncertain``.
+    best score wins. Structures with other hidden states that score as well are
+    reported as ``uncertain``, failed checks as ``doubts``; read ``confident``.
+
+    Examples
+    --------
+    >>> import pysindy as ps
+    >>> from latentsindy import discover_hidden, systems
+    >>> data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=1000)
+    >>> result = discover_hidden(data.x[:, :1], ps.PolynomialLibrary(degree=3),
+    ...                          t=data.t, feature_names=["x"], verbose=False)
+    >>> result.hidden_names, result.confident
+    (('h0',), True)
 
     Parameters
     ----------
@@ -62,7 +72,9 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     feature_names : list of str, optional
         Names of the observed states (default ``x0, x1, ...``).
     hidden_terms : list of (state, feature), optional
-        Fix the hidden states: each named coefficient is one hidden state (no search).
+        Fix the hidden states: each named coefficient is one hidden state (no search
+        over carriers or shared variation; its rate may still be added as a second
+        state, and terms are still selected).
     hidden_names : list of str, optional
         Names for the hidden states found, in order (default ``h0, h1, ...``; the rate
         of a hidden state ``h`` is ``h_rate``).
@@ -108,7 +120,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         fits.append(model.fit(x, tk, feature_names=names))
         coefs.append(model.coefficients(n_samples=n_samples))
     first = coefs[0]
-    pairs, significance = _varying(coefs, hidden_terms)
+    pairs, _ = _varying(coefs, hidden_terms)
     if not pairs:
         raise ValueError(
             "No coefficient varies in time beyond its uncertainty, so there is no hidden "
@@ -133,7 +145,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     if hidden_names is not None and len(hidden_names) != len(result.hidden_names):
         notes.append(f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "
                      f"hidden state(s) found; names used: {list(result.hidden_names)}")
-        result = dataclasses.replace(result, notes=tuple(notes))
+        result = dataclasses.replace(result, notes=result.notes + (notes[-1],))
     return result
 
 

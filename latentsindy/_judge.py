@@ -4,9 +4,10 @@ For a proposal (:mod:`latentsindy._hypotheses`) the closed system is assembled f
 structure (observed terms, hidden states' loadings, the closure's terms), then refined
 by multiple shooting (:mod:`latentsindy._refine`) and its terms selected on the
 integrated likelihood (:mod:`latentsindy._terms`: drops, additions, swaps and merges scored by
-BIC). Last, interleaved held-out segments give its score. Among all proposals the
-sparsest one whose score is within one standard error of the best wins; proposals of
-the same size within that band make the result uncertain, and the summary says so.
+BIC). Last, interleaved held-out segments give its score. Among all scored proposals
+the sparsest one whose score is within one standard error of the best wins; others in
+that band with other hidden states (whatever their size) make the result uncertain,
+and the summary says so.
 """
 
 from __future__ import annotations
@@ -24,7 +25,10 @@ from ._shooting import BlowUp
 from ._terms import ambiguities, select_terms
 
 RATE_TRIGGER = 1.5  # best misfit (noise variances) above which rate states are tried
-TIE = 0.05  # held-out misfits below this (noise variances) cannot be told apart
+# Held-out scores below this (noise variances) all count as perfect: on noise-free data
+# the noise level is floored (0.1% of each state's std), scores are tiny and their
+# differences are the integrator's, not the data's; the smallest such system wins.
+TIE = 0.05
 
 
 @dataclass(frozen=True)
@@ -133,16 +137,20 @@ def _first_fit(p: Proposal, ctx: Context, options) -> _Trial | None:
 
 def _finish(trial: _Trial) -> Verdict:
     """Stepwise selection and the held-out score of a refined proposal."""
+    # the pool includes the system's own terms, so a term swapped out can come back
+    pool = trial.candidates | trial.fit.system.free
     try:
-        fit, history = select_terms(trial.problem, trial.fit, trial.candidates)
+        fit, history = select_terms(trial.problem, trial.fit, pool)
         cv, se, _ = cross_validate(trial.problem, fit)
     except BlowUp:
         return _unscored(trial, "blew up")
     return Verdict(trial.proposal, fit, trial.problem, cv, se, tuple(history),
-                   trial.initial_misfit, trial.candidates)
+                   trial.initial_misfit, pool)
 
 
 def _unscored(trial: _Trial, why: str) -> Verdict:
+    """A verdict without a held-out score: ``cv`` holds the in-sample misfit (for
+    display only; ``rank`` never compares it with held-out scores)."""
     return Verdict(trial.proposal, trial.fit, trial.problem, trial.fit.residual_variance, 0.0,
                    (why,), trial.initial_misfit)
 
@@ -185,17 +193,18 @@ def exchangeable_terms(verdict: Verdict):
 
 
 def rank(verdicts):
-    """Verdicts ordered by choice: the sparsest within one standard error of the best
-    score first; returns (ordered, uncertain) where ``uncertain`` lists the others in
-    that band whose hidden states are not a superset of the chosen one's (other
-    carriers): structures the data cannot tell apart. Systems in the band that only
-    add terms or hidden states to the chosen one are parsimony's call."""
+    """Verdicts ordered by choice: among the scored ones, the sparsest within one
+    standard error of the best score first; returns (ordered, uncertain) where
+    ``uncertain`` lists the others in that band whose hidden states are not a superset
+    of the chosen one's (other carriers): structures the data cannot tell apart.
+    Systems in the band that only add terms or hidden states to the chosen one are
+    parsimony's call. With no scored verdict, the smallest comes first."""
     unique = []
     for v in sorted(verdicts, key=lambda v: (not v.scored, v.cv)):
         if not any(same_structure(v, u) for u in unique):
             unique.append(v)  # the same final system reached twice counts once
     verdicts = unique
-    finite = [v for v in verdicts if np.isfinite(v.cv)]
+    finite = [v for v in verdicts if v.scored and np.isfinite(v.cv)]
     if not finite:
         return sorted(verdicts, key=lambda v: v.size), []
     best = min(finite, key=lambda v: v.cv)
@@ -206,9 +215,10 @@ def rank(verdicts):
     # LV: h + d x with xdot = x h + d x^2 is the same system, same size); the variable
     # that needs the fewest observed terms is the one that carries the dynamics.
     chosen = min(inside, key=lambda v: (v.size, _observed_terms(v), v.cv))
-    rest = sorted([v for v in verdicts if v is not chosen],
-                  key=lambda v: (v.cv > band, v.size if v.cv <= band else 0, v.cv))
     ids = {id(v) for v in inside}
+    rest = sorted([v for v in verdicts if v is not chosen],
+                  key=lambda v: (not v.scored, id(v) not in ids,
+                                 v.size if id(v) in ids else 0, v.cv))
     uncertain = [v for v in rest if id(v) in ids and not _extends(v, chosen)]
     return [chosen] + rest, uncertain
 

@@ -151,7 +151,7 @@ def load(path) -> HiddenDiscovery:
             if meta.get("format") != FORMAT or meta.get("version") not in READABLE:
                 raise _Refused(f"not a saved HiddenDiscovery (format {meta.get('format')!r}, "
                                f"version {meta.get('version')!r}; expected {FORMAT!r}, "
-                               f"version {VERSION})")
+                               f"versions {', '.join(map(str, READABLE))})")
             arrays = {k: data[k] for k in data.files if k != "meta"}
         return _build(meta, arrays)
     except _Refused as err:
@@ -220,4 +220,11 @@ def _build(meta, arrays):
             "misfit_before", "misfit_after", "continuity_gap", "n_segments", "iterations",
             "status")}),
         tuple(str(s) for s in meta["notes"]), times, observed_series, hidden_series, initial,
-        arrays["initial_state"], tuple(str(s) for s in meta.get("doubts", [])))
+        arrays["initial_state"], _doubts(meta))
+
+
+def _doubts(meta):
+    if meta["version"] < 3:  # written before results carried their checks
+        return ("saved by an older latentsindy (file version 2) that did not record the "
+                "checks on the result; rerun discover_hidden to check it",)
+    return tuple(str(s) for s in meta["doubts"])

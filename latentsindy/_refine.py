@@ -32,6 +32,7 @@ _GAP = 1e-2  # continuity gaps are held below this fraction of the noise level
 # (term selection, scores) must not treat it as noise.
 NOISE_FLOOR = 1e-3
 STEP = 0.2  # integrator step times the fastest local rate (see _stable_step)
+MAX_GRID = 400  # integrator steps per segment at most
 _PENALTY = (1e2, 1e4)  # continuity weight: first pass, then the enforcing pass
 
 
@@ -124,7 +125,11 @@ class Problem:
         self.bound = bound
         self.integrator = Integrator(system, bound)
         self._integrators = {system.free.tobytes(): self.integrator}
-        step = min(duration / 2, _stable_step(self.integrator, guesses, system.coef))
+        # a finite step budget: at most MAX_GRID steps per segment, however fast the
+        # initial system's rates (a system that needs more is stiff or wild; if it blows
+        # up on that grid, that is reported as BlowUp)
+        step = float(np.clip(_stable_step(self.integrator, guesses, system.coef),
+                             duration / MAX_GRID, duration / 2))
         self.groups = make_groups(self.times, self.observed, duration, step)
         self.n_segments = sum(g.n_segments for g in self.groups)
         starts = []
@@ -187,12 +192,12 @@ class Problem:
         weights = np.ones(self.n_segments) if weights is None else weights
         max_iterations = max_iterations or self.options.max_iterations
         values = system.free_values()
-        total, status = 0, "converged"
+        total = 0
         for rho in penalties:
             values, starts, eq, its, ok = _levenberg_marquardt(
                 self, system, values, starts, weights, rho, max_iterations)
             total += its
-            status = status if ok else "iteration_limit"
+            status = "converged" if ok else "iteration_limit"  # of the last pass
             if self._gap(system.with_free(values), starts) < _GAP:
                 break
         fitted = system.with_free(values)

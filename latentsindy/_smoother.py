@@ -4,11 +4,14 @@ A structure says, for every observed equation, which library terms it has and ho
 hidden states enter: ``xdot_i = sum_j c_ij theta_j + sum_k theta_k (c_ik + sum_a
 W_ika h_a(t))``, where hidden state ``a`` *is* the coefficient of its pivot term
 (``W = 1``, ``c = 0`` there). Given the structure, the hidden series and the constants
-follow from penalised least squares on the derivatives: each h_a is piecewise linear on
-knots spaced at half the differentiator's window (the finest scale the derivatives
-resolve), with a penalty on its second differences (curvature, which does not shrink
-amplitudes) whose weight is the largest that still fits the derivatives as well as
-their noise allows (discrepancy principle). Loadings W of non-pivot terms are updated
+follow from penalised least squares in integral form: every observed sample is
+predicted by its segment's anchor (a free start value) plus the integral of the
+right-hand side from the segment's start, residuals in units of the measurement noise
+(no derivative of the noisy data enters). Each h_a is piecewise linear on knots spaced
+at half the differentiator's window (the finest scale the data resolve), with a
+penalty on its second differences (curvature, which does not shrink amplitudes) whose
+weight is the largest that still fits the data as well as their noise allows
+(discrepancy principle). Loadings W of non-pivot terms are updated
 in alternation. Everything is sparse: cost and memory grow linearly with the series.
 """
 
@@ -61,7 +64,7 @@ class HiddenFit:
     structure: Structure
     constants: np.ndarray  # (n_observed, n_features); offsets of varying terms included
     hidden: list  # (T, n_hidden) per trajectory
-    misfit: float  # weighted mean squared residual, in derivative-noise variances
+    misfit: float  # mean squared residual of the observed samples, in noise variances
     roughness: float
 
 

@@ -1,4 +1,5 @@
-"""Term selection on the integrated likelihood: drops, additions and swaps.
+"""Term selection on the integrated likelihood: drops, additions, swaps, merges and
+exchanges.
 
 A closed system's terms are chosen by the extended Bayesian information criterion of
 its fit by integration: ``misfit / s^2 + k (log(n) + log(p))`` (misfit in noise
@@ -96,13 +97,14 @@ def ambiguities(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS):
             break
         tried += 1
         trial = _refit(problem, fit, model, keep)
-        if trial is not None and (trial.cost - fit.cost) / s2 < AMBIGUITY:
-            found.append((move, float((trial.cost - fit.cost) / s2)))
+        change = None if trial is None else (trial.data_cost - fit.data_cost) / s2
+        if change is not None and change < AMBIGUITY:
+            found.append((move, float(change)))
     return found
 
 
 def _bic(fit, s2, price):
-    return fit.cost / s2 + price * fit.system.n_free
+    return fit.data_cost / s2 + price * fit.system.n_free  # continuity penalty left out
 
 
 def _refit(problem, fit, model, keep):

@@ -131,10 +131,15 @@ def test_simulate_bad_x0(lv):
         result.simulate(x0=[1.0])
 
 
-def test_equation_unknown_state(lv):
+def test_equation_and_coefficient_refuse_unknown_names(lv):
     _, result = lv
-    with pytest.raises(KeyError, match="Unknown state 'y'"):
+    with pytest.raises(ValueError, match="Unknown state 'y'"):
         result.equation("y")
+    with pytest.raises(ValueError, match="Unknown state 'y'"):
+        result.coefficient("y", "x")
+    with pytest.raises(ValueError, match=r"uses \['z'\], which are not states"):
+        result.coefficient("h", "h*z")
+    assert result.coefficient("h", "x**3") == 0.0  # a known feature that is absent
 
 
 FAST = {"support_steps": 300, "refit_steps": 200}

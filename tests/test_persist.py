@@ -42,8 +42,8 @@ def test_round_trip_is_exact(saved):
 
 
 def test_doubts_round_trip_and_version_2_files_load(saved, tmp_path):
-    """A result's doubts survive the round trip; a version-2 file (before doubts) loads
-    with none."""
+    """A result's doubts survive the round trip; a version-2 file (written before
+    results carried their checks) loads, doubted for that reason, so not confident."""
     import dataclasses
 
     result, _ = saved
@@ -59,7 +59,9 @@ def test_doubts_round_trip_and_version_2_files_load(saved, tmp_path):
         del meta["doubts"]
 
     _rewrite(path, tmp_path / "v2.npz", to_version_2)
-    assert load(tmp_path / "v2.npz").doubts == ()
+    old = load(tmp_path / "v2.npz")
+    assert len(old.doubts) == 1 and "did not record the checks" in old.doubts[0]
+    assert not old.confident
 
 
 def test_expression_trees_round_trip():
