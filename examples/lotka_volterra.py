@@ -62,6 +62,10 @@ def main(noise_levels=(0.0, 0.01), n_times=2000, training=None, output="examples
         print(f"closed system reproduces the prey: normalised RMSE {nrmse:.4f} ({sim.status})")
     if output:
         _figure(results, Path(output) / "lotka_volterra.png")
+        for noise, r in results.items():  # the library's own figure, one per noise level
+            r["result"].plot(truth=r["data"].x_clean[:, 1], simulation=r["simulation"],
+                             path=Path(output) / f"lotka_volterra_{round(100 * noise)}pct"
+                                                 "_result.png")
     return results
 
 

@@ -52,6 +52,12 @@ def main(noise_levels=(0.0, 0.01), n_times=2000, training=None, output="examples
               + f"; extra {extra or 'none'}; missing {missing or 'none'}")
     if output:
         _figure(results, Path(output) / "oscillator.png")
+        for noise, r in results.items():  # the library's own figures, one per noise level
+            tag = f"{round(100 * noise)}pct"
+            r["result"].plot(truth=r["data"].parameters["B"],
+                             path=Path(output) / f"oscillator_{tag}_result.png")
+            r["result"].coefficients.plot(truth={("y", "x"): r["data"].parameters["B"]},
+                                          path=Path(output) / f"oscillator_{tag}_stage_one.png")
     return results
 
 

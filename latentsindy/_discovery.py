@@ -319,6 +319,32 @@ class HiddenDiscovery:
         lines += [f"  note: {n}" for n in self.notes]
         return "\n".join(lines)
 
+    def plot(self, truth=None, *, path=None, simulation=None, figsize=None):
+        """Observed data against the closed system; hidden states with their band.
+
+        Needs matplotlib (``pip install "latentsindy[plot]"``).
+
+        Parameters
+        ----------
+        truth : array (n_times,) or (n_times, n_true), optional
+            Known hidden variables (first trajectory), drawn after the best affine map
+            into each hidden state's units.
+        path : str or Path, optional
+            Also save the figure there.
+        simulation : Simulation, optional
+            Reuse a ``simulate()`` result instead of integrating again.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+        """
+        from ._plotting import plot_discovery
+
+        fig = plot_discovery(self, truth, simulation=simulation, figsize=figsize)
+        if path is not None:
+            fig.savefig(path, dpi=120)
+        return fig
+
     # ----------------------------------------------------------- persistence
     def save(self, path) -> None:
         """Write the result to a ``.npz`` file (see :func:`load`)."""

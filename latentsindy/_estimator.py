@@ -231,9 +231,20 @@ class DynamicSINDy:
     def predict(self, coefficients: CoefficientSeries | None = None) -> list[np.ndarray]:
         """Derivatives Theta(x) Xi(t) on the training trajectories, one array each."""
         self._check_fitted()
+        if self.library_ is None:
+            raise RuntimeError("This DynamicSINDy was loaded from a file without its feature "
+                               "library (only polynomial and Fourier libraries are stored); "
+                               "predict() needs it: refit, or compute Theta(x) yourself.")
         coefficients = coefficients or self.coefficients(n_samples=1)
         thetas = [np.asarray(a) for a in self.library_.transform(self.x_)]
         return [np.einsum("tf,tnf->tn", th, coefficients.mean) for th in thetas]
+
+    def save(self, path) -> None:
+        """Write the fitted model to ``path`` (``.npz``); read it with
+        :func:`latentsindy.load`, which gives the same ``coefficients()``."""
+        from ._persist_model import save_model
+
+        save_model(self, path)
 
     def _check_fitted(self):
         if not hasattr(self, "model_"):

@@ -18,6 +18,9 @@ import numpy as np
 import sympy as sp
 
 from ._discovery import Alternative, HiddenDiscovery, HiddenState, Refinement, Term
+from ._persist_model import FORMAT as MODEL_FORMAT
+from ._persist_model import VERSION as MODEL_VERSION
+from ._persist_model import load_model, read_any
 from ._results import CoefficientSeries
 
 FORMAT = "latentsindy.HiddenDiscovery"
@@ -137,29 +140,38 @@ def save(result: HiddenDiscovery, path) -> None:
         np.savez_compressed(fh, **arrays)
 
 
-def load(path) -> HiddenDiscovery:
-    """Read a result written by ``HiddenDiscovery.save``.
+def load(path):
+    """Read a file written by ``HiddenDiscovery.save`` or ``DynamicSINDy.save``.
 
-    Equations are rebuilt from their stored structure (a whitelist of node types and
-    the result's own state names); no text from the file is evaluated. A file that is
-    not a result, or is damaged, is refused with a ValueError.
+    Returns the HiddenDiscovery or the fitted DynamicSINDy. Equations are rebuilt from
+    their stored structure (a whitelist of node types and the result's own state
+    names), networks from their settings with the stored weights; nothing in the file
+    is unpickled or evaluated. A file that is neither, or is damaged, is refused with a
+    ValueError that names it.
     """
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as data:
-            meta = json.loads(str(data["meta"])) if "meta" in data.files else {}
-            if meta.get("format") != FORMAT or meta.get("version") not in READABLE:
-                raise _Refused(f"not a saved HiddenDiscovery (format {meta.get('format')!r}, "
-                               f"version {meta.get('version')!r}; expected {FORMAT!r}, "
-                               f"versions {', '.join(map(str, READABLE))})")
-            arrays = {k: data[k] for k in data.files if k != "meta"}
+        meta, arrays = read_any(path)
+        if meta.get("format") == MODEL_FORMAT:
+            if meta.get("version") != MODEL_VERSION:
+                raise _Refused(f"DynamicSINDy file version {meta.get('version')!r}; this "
+                               f"latentsindy reads version {MODEL_VERSION}")
+            return load_model(meta, arrays, path)
+        if meta.get("format") != FORMAT or meta.get("version") not in READABLE:
+            raise _Refused(f"not a saved HiddenDiscovery or DynamicSINDy (format "
+                           f"{meta.get('format')!r}, version {meta.get('version')!r}; "
+                           f"expected {FORMAT!r}, versions "
+                           f"{', '.join(map(str, READABLE))}, or {MODEL_FORMAT!r})")
         return _build(meta, arrays)
     except _Refused as err:
         raise ValueError(f"{path} cannot be loaded: {err}.") from None
-    except (KeyError, TypeError, AttributeError, ValueError, OSError,
+    except (KeyError, TypeError, AttributeError, ValueError, OSError, RuntimeError,
             zipfile.BadZipFile) as err:
+        if str(err).startswith(f"{path} cannot be loaded"):
+            raise  # read_any's message already names the file and the problem
+        detail = " ".join(str(err).split())  # one line
         raise ValueError(f"{path} cannot be loaded: missing or malformed entry "
-                         f"({type(err).__name__}: {err}).") from None
+                         f"({type(err).__name__}: {detail}).") from None
 
 
 def _names(values, what):

@@ -140,6 +140,31 @@ class CoefficientSeries:
                                                                      strict=True)]
         return self.times[found] if found else np.array([])
 
+    def plot(self, truth=None, *, terms=None, path=None, figsize=None):
+        """Coefficients over time with +- 2 std bands, switch times marked.
+
+        Needs matplotlib (``pip install "latentsindy[plot]"``).
+
+        Parameters
+        ----------
+        truth : dict {(state, feature): array over ``times``}, optional
+            Known coefficients, drawn dashed.
+        terms : list of (state, feature), optional
+            Coefficients to draw (default: every active one).
+        path : str or Path, optional
+            Also save the figure there.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+        """
+        from ._plotting import plot_coefficients
+
+        fig = plot_coefficients(self, truth, terms=terms, figsize=figsize)
+        if path is not None:
+            fig.savefig(path, dpi=120)
+        return fig
+
     def summary(self) -> str:
         lines = [f"Time-varying SINDy coefficients: {len(self.times)} times, "
                  f"{self.samples.shape[0]} samples"]

@@ -214,6 +214,7 @@ def test_lotka_volterra_example_runs(tmp_path):
     out = lotka_volterra.main(noise_levels=(0.01,), n_times=600, output=tmp_path,
                               verbose=False)
     assert (tmp_path / "lotka_volterra.png").exists()
+    assert (tmp_path / "lotka_volterra_1pct_result.png").exists()
     assert out[0.01]["r2"] > 0.99
 
 
@@ -222,6 +223,8 @@ def test_oscillator_example_runs(tmp_path):
     law -6 + 5B - B^2 within 1% (the paper: 2%)."""
     out = oscillator.main(noise_levels=(0.0,), n_times=600, output=tmp_path, verbose=False)
     assert (tmp_path / "oscillator.png").exists()
+    assert (tmp_path / "oscillator_0pct_result.png").exists()
+    assert (tmp_path / "oscillator_0pct_stage_one.png").exists()
     r = out[0.0]
     assert r["result"].hidden_names == ("B",)
     assert r["extra"] == [] and r["missing"] == []

@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pysindy as ps
 import pytest
 import sympy as sp
 
@@ -126,3 +127,53 @@ def test_missing_entries_are_refused(saved, tmp_path):
     _rewrite(path, bad, lambda m: m.pop("terms"))
     with pytest.raises(ValueError, match="missing or malformed entry"):
         load(bad)
+
+
+@pytest.mark.parametrize("generator, training", [
+    ("timevae", {"support_steps": 40, "refit_steps": 40}),
+    ("hypersindy", {"support_steps": 2, "refit_steps": 1, "min_epochs": 1, "window": 200}),
+    ("hypersindy", {"mode": "online", "support_steps": 2, "refit_steps": 1, "window": 200,
+                    "online_steps": 1}),
+], ids=["timevae", "hypersindy", "hypersindy-online"])
+def test_fitted_model_round_trip_gives_the_same_coefficients(generator, training, tmp_path):
+    """A fitted DynamicSINDy, saved and loaded (weights as plain arrays, network rebuilt
+    from its settings), gives bit-identical coefficients, samples and predictions."""
+    from latentsindy import DynamicSINDy, systems
+
+    data = systems.harmonic_oscillator(n_times=400)
+    model = DynamicSINDy(ps.PolynomialLibrary(degree=2), generator=generator,
+                         training=training, verbose=False, seed=4)
+    model.fit(data.x, data.t, feature_names=["x", "y"])
+    model.save(tmp_path / "model.npz")
+    back = load(tmp_path / "model.npz")
+    assert isinstance(back, DynamicSINDy)
+    a, b = model.coefficients(n_samples=5), back.coefficients(n_samples=5)
+    np.testing.assert_array_equal(a.mean, b.mean)
+    np.testing.assert_array_equal(a.samples, b.samples)
+    assert (a.state_names, a.feature_names) == (b.state_names, b.feature_names)
+    np.testing.assert_array_equal(a.support, b.support)
+    np.testing.assert_array_equal(model.predict()[0], back.predict()[0])
+    assert back.get_params()["generator"] == generator
+
+
+def test_model_files_without_library_or_with_wrong_weights(tmp_path):
+    """A custom library is not stored: the loaded model gives coefficients and says why
+    predict() cannot run; weights that do not fit the network are refused."""
+    from latentsindy import DynamicSINDy, systems
+
+    data = systems.harmonic_oscillator(n_times=300)
+    library = ps.CustomLibrary([lambda u: u, lambda u: u**3])
+    model = DynamicSINDy(library, training={"support_steps": 20, "refit_steps": 20},
+                         verbose=False).fit(data.x, data.t)
+    model.save(tmp_path / "m.npz")
+    back = load(tmp_path / "m.npz")
+    np.testing.assert_array_equal(back.coefficients(2).mean, model.coefficients(2).mean)
+    with pytest.raises(RuntimeError, match="without its feature library"):
+        back.predict()
+    with np.load(tmp_path / "m.npz") as f:
+        arrays = {k: f[k] for k in f.files}
+    key = next(k for k in arrays if k.startswith("weight:") and arrays[k].ndim == 2)
+    arrays[key] = arrays[key][:, :1]
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ValueError, match=r"bad\.npz cannot be loaded: .*size mismatch"):
+        load(tmp_path / "bad.npz")
