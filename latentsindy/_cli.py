@@ -95,10 +95,16 @@ def _show(args) -> int:
 def _simulate(args) -> int:
     result = _load(args.result)
     t = result.times
+    if args.n_times is not None and args.n_times < 2:
+        raise UsageError(f"--n-times must be at least 2; got {args.n_times}.")
+    if args.t_end is not None and not args.t_end > t[0]:
+        raise UsageError(f"--t-end must be after the first time {t[0]:g}; got {args.t_end:g}.")
+    if args.max_steps < 1:
+        raise UsageError(f"--max-steps must be positive; got {args.max_steps}.")
     if args.t_end is not None or args.n_times is not None:
         t = np.linspace(t[0], args.t_end if args.t_end is not None else t[-1],
-                        args.n_times or len(t))
-    sim = result.simulate(t)
+                        args.n_times if args.n_times is not None else len(t))
+    sim = result.simulate(t, max_steps=args.max_steps)
     _progress(args, f"simulation: {sim.status}; {sim.message}")
     table = np.column_stack([sim.t, sim.x])
     header = ",".join(("t", *sim.state_names))
@@ -154,6 +160,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("result", help="a result file written by discover --out")
     m.add_argument("--t-end", type=float, help="end time (default: the data's)")
     m.add_argument("--n-times", type=int, help="number of output times (default: the data's)")
+    m.add_argument("--max-steps", type=int, default=20_000,
+                   help="integrator step budget (default 20000); exit code 1 when exhausted")
     m.add_argument("--out", help="write the trajectory here (CSV)")
     m.add_argument("--quiet", action="store_true", help="no progress on stderr")
     m.set_defaults(run=_simulate)

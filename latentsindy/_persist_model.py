@@ -139,7 +139,7 @@ def read_any(path):
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"])) if "meta" in data.files else {}
             arrays = {k: data[k] for k in data.files if k != "meta"}
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as err:
-        raise ValueError(f"{path} cannot be loaded: not a latentsindy file "
-                         f"({type(err).__name__}: {err}).") from None
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        raise ValueError(f"{path} cannot be loaded: not a latentsindy file (expected the "
+                         ".npz written by HiddenDiscovery.save or DynamicSINDy.save).") from None
     return meta, arrays

@@ -50,6 +50,10 @@ def test_discover_gives_the_python_result_and_show_and_simulate_read_it(lv, lv_c
     assert lines[0] == "t,x,h" and len(lines) == 51
     table = np.loadtxt(lines[1:], delimiter=",")
     np.testing.assert_allclose(table[0, 1:], result.initial_state)
+    assert main(["simulate", str(out), "--n-times", "0", "--quiet"]) == 2
+    assert "--n-times must be at least 2; got 0" in capsys.readouterr().err
+    assert main(["simulate", str(out), "--t-end", "1e6", "--n-times", "5", "--max-steps",
+                 "100", "--quiet", "--out", str(tmp_path / "far.csv")]) == 1
 
 
 @pytest.mark.parametrize("command", [[], ["discover"], ["show"], ["simulate"]])
@@ -89,7 +93,8 @@ def test_input_problems_are_one_line_and_exit_code_2(lv_csv, tmp_path, capsys):
                     "cannot be read as NPZ")
     _one_line_error(capsys, main([*base[:1], str(lv_csv), *base[1:], "--library", "cubic"]),
                     "library 'cubic' not understood")
-    _one_line_error(capsys, main(["show", str(garbage)]), "cannot be loaded")
+    _one_line_error(capsys, main(["show", str(garbage)]), "not a latentsindy file")
+    _one_line_error(capsys, main(["show", str(lv_csv)]), "not a latentsindy file")
 
 
 def test_columns_from_npz_and_hdf5(tmp_path):
