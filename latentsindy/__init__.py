@@ -1,13 +1,15 @@
 """latentsindy: discover hidden variables of dynamical systems with dynamic SINDy.
 
 Public surface: :func:`discover_hidden` (observed series -> hidden states and a closed
-ODE), :class:`DynamicSINDy` (stage one: time-varying SINDy coefficients), :func:`load`,
-the result types, and :mod:`latentsindy.systems` (test beds with known truth).
+ODE), :func:`discover_many` (many recordings or seeds in parallel),
+:class:`DynamicSINDy` (stage one: time-varying SINDy coefficients), :func:`load`, the
+result types, and :mod:`latentsindy.systems` (test beds with known truth).
 """
 
 from importlib.metadata import PackageNotFoundError, version
 
 from . import systems
+from ._batch import Run, discover_many
 from ._discovery import (
     Alternative,
     HiddenComparison,
@@ -31,6 +33,8 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 
 __all__ = [
     "discover_hidden",
+    "discover_many",
+    "Run",
     "DynamicSINDy",
     "load",
     "HiddenDiscovery",

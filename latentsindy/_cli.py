@@ -8,6 +8,7 @@ code 2; a discovery that cannot be done (no coefficient varies) exit code 1.
 from __future__ import annotations
 
 import argparse
+import glob
 import sys
 from pathlib import Path
 
@@ -49,6 +50,32 @@ def _names(text: str) -> list[str]:
     return names
 
 
+SUFFIXES = (".csv", ".npz", ".h5", ".hdf5")
+
+
+def _data_files(spec: str) -> tuple[list[Path], bool]:
+    """The files named by DATA (a file, a folder or a glob) and whether it is a batch."""
+    path = Path(spec)
+    if path.is_dir():
+        files = sorted(p for p in path.iterdir() if p.suffix.lower() in SUFFIXES)
+    elif any(ch in spec for ch in "*?["):
+        files = sorted(Path(p) for p in glob.glob(spec) if Path(p).is_file())
+    else:
+        return [path], False
+    if not files:
+        raise UsageError(f"{spec}: no data files ({', '.join(SUFFIXES)}) found there.")
+    return files, True
+
+
+def _series(path, args, observed):
+    columns = read_columns(path, [args.time, *observed])
+    t = columns[args.time]
+    if len(t) < 10 or np.any(np.diff(t) <= 0):
+        raise UsageError(f"{path}: time column {args.time!r} must increase strictly "
+                         f"over at least 10 rows; got {len(t)} rows.")
+    return t, np.column_stack([columns[n] for n in observed])
+
+
 def _discover(args) -> int:
     from ._hidden import discover_hidden
 
@@ -56,12 +83,10 @@ def _discover(args) -> int:
     library = parse_library(args.library)
     closure = parse_library(args.closure_library) if args.closure_library else None
     hidden_names = _names(args.hidden_names) if args.hidden_names else None
-    columns = read_columns(args.data, [args.time, *observed])
-    t = columns[args.time]
-    if len(t) < 10 or np.any(np.diff(t) <= 0):
-        raise UsageError(f"{args.data}: time column {args.time!r} must increase strictly "
-                         f"over at least 10 rows; got {len(t)} rows.")
-    x = np.column_stack([columns[n] for n in observed])
+    files, batch = _data_files(args.data)
+    if batch:
+        return _discover_batch(args, files, observed, library, closure, hidden_names)
+    t, x = _series(files[0], args, observed)
     _progress(args, f"discovering hidden states from {len(observed)} observed column(s), "
                     f"{len(t)} samples ...")
     result = discover_hidden(x, library, t=t, feature_names=observed,
@@ -76,6 +101,38 @@ def _discover(args) -> int:
         result.plot(path=args.plot)
         _progress(args, f"figure written to {args.plot}")
     return 0
+
+
+def _discover_batch(args, files, observed, library, closure, hidden_names) -> int:
+    import csv
+
+    from ._batch import discover_many
+
+    names = [p.stem for p in files]
+    if len(set(names)) != len(names):
+        raise UsageError("data files must have distinct names (without suffix); got "
+                         f"{[p.name for p in files]}.")
+    data = {p.stem: _series(p, args, observed) for p in files}
+    _progress(args, f"discovering hidden states in {len(files)} files with {args.jobs} "
+                    f"worker(s) ...")
+    runs = discover_many({k: x for k, (_, x) in data.items()}, library,
+                         t={k: t for k, (t, _) in data.items()}, n_jobs=args.jobs,
+                         backend=args.backend, feature_names=observed,
+                         hidden_names=hidden_names, closure_library=closure,
+                         generator=args.generator, refine=not args.no_refine,
+                         seeds=[args.seed])
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        for run in runs:
+            if run.result is not None:
+                run.result.save(out / f"{run.name}.npz")
+        _progress(args, f"results written to {out}/")
+    rows = [r.row() for r in runs]
+    writer = csv.DictWriter(sys.stdout, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return 0 if all(r.error is None for r in runs) else EXIT_FAILED
 
 
 def _load(path):
@@ -130,7 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("discover", help="infer hidden states and a closed ODE from data",
                        description="Infer hidden states and a closed, autonomous ODE from "
                                    "observed columns of a CSV, NPZ or HDF5 file.")
-    d.add_argument("data", help="CSV (header row of names), NPZ or HDF5 file")
+    d.add_argument("data", help="CSV (header row of names), NPZ or HDF5 file; a folder or "
+                                "a glob (quoted) runs every file and prints one table")
     d.add_argument("--time", required=True, help="name of the time column")
     d.add_argument("--observed", required=True, help="observed columns, comma-separated")
     d.add_argument("--library", default="poly:2",
@@ -142,7 +200,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--no-refine", action="store_true",
                    help="skip refinement by integration (faster, nothing is checked)")
     d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--out", help="write the result here (.npz; read with latentsindy show)")
+    d.add_argument("--out", help="write the result here (.npz; read with latentsindy show); "
+                               "for a folder or glob: a folder of results")
+    d.add_argument("--jobs", type=int, default=1,
+                   help="parallel workers for a folder or glob (-1: one per core)")
+    d.add_argument("--backend", help="joblib backend for the workers (default local "
+                                     "processes; dask or ray once registered with joblib)")
     d.add_argument("--plot", help="write a figure here (.png, .pdf, ...; needs matplotlib)")
     d.add_argument("--quiet", action="store_true", help="no progress on stderr")
     d.set_defaults(run=_discover)
