@@ -340,10 +340,7 @@ class HiddenDiscovery:
         """
         from ._plotting import plot_discovery
 
-        fig = plot_discovery(self, truth, simulation=simulation, figsize=figsize)
-        if path is not None:
-            fig.savefig(path, dpi=120)
-        return fig
+        return plot_discovery(self, truth, simulation=simulation, figsize=figsize, path=path)
 
     # ----------------------------------------------------------- persistence
     def save(self, path) -> None:

@@ -27,7 +27,14 @@ def _truth_array(truth, n_times, what):
     return arr
 
 
-def plot_discovery(result, truth=None, *, simulation=None, figsize=None):
+def _finish(fig, path):
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=120)
+    return fig
+
+
+def plot_discovery(result, truth=None, *, simulation=None, figsize=None, path=None):
     """Observed data against the closed system, hidden states with their band.
 
     One panel per observed state (data as dots, the closed system's simulation from
@@ -70,11 +77,10 @@ def plot_discovery(result, truth=None, *, simulation=None, figsize=None):
     verdict = ("confident" if result.confident
                else "NOT confident: see summary() for doubts and alternatives")
     fig.suptitle(f"{n_obs} observed + {n_hid} hidden state(s); {verdict}", fontsize=10)
-    fig.tight_layout()
-    return fig
+    return _finish(fig, path)
 
 
-def plot_coefficients(series, truth=None, *, terms=None, figsize=None):
+def plot_coefficients(series, truth=None, *, terms=None, figsize=None, path=None):
     """Coefficients over time with bands of +- 2 posterior standard deviations.
 
     ``terms``: (state, feature) pairs (default every active one); ``truth``: a dict
@@ -107,5 +113,4 @@ def plot_coefficients(series, truth=None, *, terms=None, figsize=None):
         ax.set_ylabel(f"d{state}/dt: {feature}", fontsize=8)
         ax.legend(loc="upper right", fontsize=7)
     axes[-1, 0].set_xlabel("t")
-    fig.tight_layout()
-    return fig
+    return _finish(fig, path)

@@ -160,10 +160,7 @@ class CoefficientSeries:
         """
         from ._plotting import plot_coefficients
 
-        fig = plot_coefficients(self, truth, terms=terms, figsize=figsize)
-        if path is not None:
-            fig.savefig(path, dpi=120)
-        return fig
+        return plot_coefficients(self, truth, terms=terms, figsize=figsize, path=path)
 
     def summary(self) -> str:
         lines = [f"Time-varying SINDy coefficients: {len(self.times)} times, "
