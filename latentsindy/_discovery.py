@@ -100,11 +100,14 @@ class HiddenComparison:
     scale : ndarray, shape (n_hidden, n_true)
     offset : ndarray, shape (n_true,)
         The map: ``true ~ hidden @ scale + offset``.
+    observed_scale : ndarray, shape (n_observed, n_true), or None
+        With ``with_observed=True``, the observed states' part of the map.
     """
 
     r2: np.ndarray
     scale: np.ndarray
     offset: np.ndarray
+    observed_scale: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -259,19 +262,30 @@ class HiddenDiscovery:
         return integrate(self.vector_field(), t, x0, self.state_names, bound=bound,
                          max_steps=max_steps)
 
-    def compare_hidden(self, true_hidden) -> HiddenComparison:
+    def compare_hidden(self, true_hidden, *, with_observed=False) -> HiddenComparison:
         """R^2 of known hidden variables against the inferred ones after the best affine
-        map (first trajectory)."""
+        map (first trajectory).
+
+        A hidden state is defined by the coefficient it carries, so it can be the true
+        variable shifted by observed states (Rossler with z hidden: ``xdot = h`` with
+        ``h = -y - z``). ``with_observed=True`` lets the map use the observed states too
+        (``true ~ hidden @ scale + observed @ observed_scale + offset``).
+        """
         truth = np.asarray(true_hidden, dtype=float)
         truth = truth[:, None] if truth.ndim == 1 else truth
         if truth.shape[0] != self.hidden.shape[0]:
             raise ValueError(f"true_hidden has {truth.shape[0]} rows but the hidden states have "
                              f"{self.hidden.shape[0]}; pass the series on the same times.")
-        design = np.hstack([self.hidden, np.ones((len(truth), 1))])
+        if not isinstance(with_observed, bool):
+            raise TypeError(f"with_observed must be True or False; got {with_observed!r}.")
+        extra = self.observed if with_observed else np.zeros((len(truth), 0))
+        design = np.hstack([self.hidden, extra, np.ones((len(truth), 1))])
         coef, *_ = np.linalg.lstsq(design, truth, rcond=None)
         resid = truth - design @ coef
         r2 = 1 - np.sum(resid**2, axis=0) / np.sum((truth - truth.mean(axis=0)) ** 2, axis=0)
-        return HiddenComparison(r2, coef[:-1], coef[-1])
+        n_h = self.hidden.shape[1]
+        return HiddenComparison(r2, coef[:n_h], coef[-1],
+                                coef[n_h:-1] if with_observed else None)
 
     def to_latex(self) -> str:
         """The equations as a LaTeX ``aligned`` block."""

@@ -125,6 +125,21 @@ def test_compare_hidden_length_mismatch(lv):
         result.compare_hidden(np.zeros(10))
 
 
+def test_compare_hidden_with_observed_states_in_the_map(lv):
+    """A truth that is the hidden state shifted by an observed one (true = 3 h - 2 x + 1)
+    is recovered exactly only when the map may use the observed states."""
+    _, result = lv
+    truth = 3.0 * result.hidden[:, 0] - 2.0 * result.observed[:, 0] + 1.0
+    assert result.compare_hidden(truth).r2[0] < 0.9
+    cmp = result.compare_hidden(truth, with_observed=True)
+    np.testing.assert_allclose(cmp.r2, [1.0], atol=1e-12)
+    np.testing.assert_allclose([cmp.scale[0, 0], cmp.observed_scale[0, 0], cmp.offset[0]],
+                               [3.0, -2.0, 1.0], atol=1e-9)
+    assert result.compare_hidden(truth).observed_scale is None
+    with pytest.raises(TypeError, match="with_observed must be True or False; got 'yes'"):
+        result.compare_hidden(truth, with_observed="yes")
+
+
 def test_simulate_bad_x0(lv):
     _, result = lv
     with pytest.raises(ValueError, match=r"x0 must have shape \(2,\)"):
