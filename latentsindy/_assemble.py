@@ -100,7 +100,7 @@ def _describe_origin(p):
     return f"{p.origin} ({p.structure.n_hidden + p.order - 1} hidden)"
 
 
-def from_verdicts(ordered, uncertain, ctx, coefs, given_names, notes):
+def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
     """The result of a refined discovery: ``ordered`` verdicts, best first."""
     best = ordered[0]
     system, fit, problem = best.system, best.fit, best.problem
@@ -127,7 +127,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, notes):
     unsure = tuple(alt(v) for v in uncertain)
     # an unscored winner (every candidate blew up on held-out data) has no score
     score, score_se = (best.cv, best.cv_se) if best.scored else (math.inf, math.nan)
-    notes = list(notes) + _static_notes(terms, names)
+    notes = _static_notes(terms, names)
     return HiddenDiscovery(
         ctx.times[0], ctx.observed[0], hidden[0], stds[0][:, system.n_observed:],
         tuple(observed), tuple(names), states, terms, coefs, score, score_se,
@@ -193,7 +193,7 @@ def best_initial(verdict):
     return verdict.problem.system, verdict.problem.initial_starts
 
 
-def from_proposals(proposals, ctx, coefs, given_names, notes, stage_one_std):
+def from_proposals(proposals, ctx, coefs, given_names, stage_one_std):
     """The result without refinement: proposals ranked by their closure's held-out
     error, coefficients from the closure's integral fit."""
     ranked = sorted(proposals, key=lambda p: p.score)
@@ -211,14 +211,13 @@ def from_proposals(proposals, ctx, coefs, given_names, notes, stage_one_std):
         alternatives.append(alternative(sys_p, ctx, p.structure.pivots, _describe_origin(p),
                                         math.nan, math.nan, sys_p.n_free, "not refined",
                                         given_names, observed))
-    notes = list(notes)
     std = np.full(hidden[0].shape, np.nan)
     for a, pivot in enumerate(best.structure.pivots):
         if pivot in stage_one_std:
             std[:, a] = stage_one_std[pivot]
     return HiddenDiscovery(
         ctx.times[0], ctx.observed[0], hidden[0], std, tuple(observed), tuple(names), states,
-        terms, coefs, math.nan, math.nan, tuple(alternatives), (), None, tuple(notes),
+        terms, coefs, math.nan, math.nan, tuple(alternatives), (), None, (),
         list(ctx.times), list(ctx.observed), hidden, [np.asarray(h) for h in best.hidden],
         np.asarray(guesses[0][0], dtype=float), (NOT_CHECKED,))
 

@@ -120,7 +120,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         fits.append(model.fit(x, tk, feature_names=names))
         coefs.append(model.coefficients(n_samples=n_samples))
     first = coefs[0]
-    pairs, _ = _varying(coefs, hidden_terms)
+    pairs = _varying(coefs, hidden_terms)
     if not pairs:
         raise ValueError(
             "No coefficient varies in time beyond its uncertainty, so there is no hidden "
@@ -134,18 +134,17 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         proposals = propose(ctx, first.support, index, series)
     else:
         proposals = [evaluate(_named_structure(first.support, index), ctx, "hidden_terms")]
-    notes = []
     if refine:
         with single_thread():
             ordered, uncertain = judge_all(proposals, ctx, RefineOptions())
-            result = from_verdicts(ordered, uncertain, ctx, first, hidden_names, notes)
+            result = from_verdicts(ordered, uncertain, ctx, first, hidden_names)
     else:
         stds = {ij: first.std[:, ij[0], ij[1]] for ij in index}
-        result = from_proposals(proposals, ctx, first, hidden_names, notes, stds)
+        result = from_proposals(proposals, ctx, first, hidden_names, stds)
     if hidden_names is not None and len(hidden_names) != len(result.hidden_names):
-        notes.append(f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "
-                     f"hidden state(s) found; names used: {list(result.hidden_names)}")
-        result = dataclasses.replace(result, notes=result.notes + (notes[-1],))
+        note = (f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "
+                f"hidden state(s) found; names used: {list(result.hidden_names)}")
+        result = dataclasses.replace(result, notes=result.notes + (note,))
     return result
 
 
@@ -233,7 +232,7 @@ def _varying(coefs, hidden_terms):
             if p not in active:
                 raise ValueError(f"hidden term {p!r} was removed by the sparsity stage "
                                  f"(active terms: {sorted(active)}); fix it with support=.")
-        return pairs, [np.inf] * len(pairs)
+        return pairs
     found = []
     for s, f in first.active_terms():
         if all(_varies(c.term(s, f), c.term_std(s, f)) for c in coefs):
@@ -241,7 +240,7 @@ def _varying(coefs, hidden_terms):
                                                         1e-300) for c in coefs)
             found.append((sig, (s, f)))
     found.sort(key=lambda item: -item[0])
-    return [p for _, p in found], [s for s, _ in found]
+    return [p for _, p in found]
 
 
 def _varies(mean, std):

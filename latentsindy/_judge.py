@@ -3,8 +3,8 @@
 For a proposal (:mod:`latentsindy._hypotheses`) the closed system is assembled from
 structure (observed terms, hidden states' loadings, the closure's terms), then refined
 by multiple shooting (:mod:`latentsindy._refine`) and its terms selected on the
-integrated likelihood (:mod:`latentsindy._terms`: drops, additions, swaps and merges scored by
-BIC). Last, interleaved held-out segments give its score. Among all scored proposals
+integrated likelihood (:mod:`latentsindy._terms`: drops, additions, swaps, merges and exchanges
+scored by BIC). Last, interleaved held-out segments give its score. Among all scored proposals
 the sparsest one whose score is within one standard error of the best wins; others in
 that band with other hidden states (whatever their size) make the result uncertain,
 and the summary says so.
