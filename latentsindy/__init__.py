@@ -3,12 +3,13 @@
 Public surface: :func:`discover_hidden` (observed series -> hidden states and a closed
 ODE), :func:`discover_many` (many recordings or seeds in parallel),
 :class:`DynamicSINDy` (stage one: time-varying SINDy coefficients), :func:`load`, the
-result types, and :mod:`latentsindy.systems` (test beds with known truth).
+result types, :mod:`latentsindy.systems` (test beds with known truth) and
+:mod:`latentsindy.celegans` (the seed paper's C. elegans workflow and its loaders).
 """
 
 from importlib.metadata import PackageNotFoundError, version
 
-from . import systems
+from . import celegans, systems
 from ._batch import Run, discover_many
 from ._discovery import (
     Alternative,
@@ -48,5 +49,6 @@ __all__ = [
     "TrainingOptions",
     "SequentialTrainingOptions",
     "systems",
+    "celegans",
     "__version__",
 ]
