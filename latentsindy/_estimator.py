@@ -246,6 +246,41 @@ class DynamicSINDy:
 
         save_model(self, path)
 
+    def coefficient_noise(self, coefficients: CoefficientSeries | None = None) -> np.ndarray:
+        """Standard deviation of white noise carried by each coefficient, from residuals.
+
+        If coefficient k of equation i is its smooth posterior mean plus white noise of
+        standard deviation s_ik, the residual ``r_i = xdot_i - Theta Xi_mean`` has
+        variance ``sigma_i^2 + sum_k s_ik^2 Theta_k^2`` at every time: a regression of
+        ``r_i^2`` on ``1`` and ``Theta_k^2`` (non-negative least squares, the kept
+        terms) estimates every s_ik (method of moments). The posterior spread
+        (:attr:`CoefficientSeries.std`) is a different thing, the uncertainty of the
+        smooth mean. Noise in the coefficients is only visible in derivatives that
+        carry it: pass exact ``x_dot`` to ``fit``; derivatives estimated from a smoothed
+        x average it away.
+
+        Returns
+        -------
+        ndarray (n_states, n_features)
+            0 outside the support.
+        """
+        from scipy.optimize import nnls
+
+        self._check_fitted()
+        fitted = self.predict(coefficients)
+        thetas = [np.asarray(a) for a in self.library_.transform(self.x_)]
+        theta = np.concatenate(thetas)
+        resid = np.concatenate([d - p for d, p in zip(self.x_dot_, fitted, strict=True)])
+        out = np.zeros(self.support_.shape)
+        for i in range(resid.shape[1]):
+            cols = np.flatnonzero(self.support_[i])
+            design = np.column_stack([np.ones(theta.shape[0]), theta[:, cols] ** 2])
+            scale = np.sqrt(np.mean(design**2, axis=0))
+            scale[scale == 0] = 1.0
+            variances, _ = nnls(design / scale, resid[:, i] ** 2)
+            out[i, cols] = np.sqrt(variances[1:] / scale[1:])
+        return out
+
     def _check_fitted(self):
         if not hasattr(self, "model_"):
             raise RuntimeError("This DynamicSINDy is not fitted yet; call fit(x, t) first.")
