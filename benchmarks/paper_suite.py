@@ -192,7 +192,7 @@ def figure(name, cases, all_series, all_data):
     fig, axes = plt.subplots(len(cases), len(methods), figsize=(3.2 * len(methods),
                                                                 1.7 * len(cases)),
                              squeeze=False, sharex="row")
-    for row, case in zip(axes, cases, strict=True):
+    for r, (row, case) in enumerate(zip(axes, cases, strict=True)):
         data = all_data[case.name]
         (state, feature), truth = next(iter(varying_terms(case, data).items()))
         for ax, method in zip(row, methods, strict=True):
@@ -205,9 +205,9 @@ def figure(name, cases, all_series, all_data):
             lo, hi = truth.min(), truth.max()
             ax.set_ylim(lo - 0.6 * (hi - lo), hi + 0.6 * (hi - lo))
             ax.tick_params(labelsize=6)
-            if row is axes[0]:
+            if r == 0:
                 ax.set_title(method, fontsize=8)
-            if ax is row[0]:
+            if method == methods[0]:
                 ax.set_ylabel(f"{case.shape}\n{state}:{feature}", fontsize=7)
     fig.tight_layout()
     FIGURES.mkdir(parents=True, exist_ok=True)

@@ -76,7 +76,9 @@ def main(layout="v5", data=None, n_frames=3000, n_worms=1, stage_one=True, train
         print("truth: ydot = " + " ".join(f"{v:+.4g}*{k}" for k, v in truth.cubic.items())
               + f" + u, u in {truth.levels}")
         print("coefficient errors: " + ", ".join(f"{k} {v:.1%}" for k, v in errors.items()))
-        print("stage one alone (free u): " + ", ".join(f"{k} {v:.0%}" for k, v in stage.items()))
+        if stage_one:
+            print("stage one alone (free u): "
+                  + ", ".join(f"{k} {v:.0%}" for k, v in stage.items()))
         for w, tr in zip(model.worms, truths, strict=True):
             err = switch_time_error(w.switch.switch_times, tr.switch_times, w.t)
             crossings = np.flatnonzero(np.diff(w.sigmoid_u > np.mean(w.raw_u))).size

@@ -262,7 +262,8 @@ class DynamicSINDy:
         Returns
         -------
         ndarray (n_states, n_features)
-            0 outside the support.
+            0 outside the support; NaN for a constant feature (such as ``"1"``), whose
+            noise cannot be told apart from the derivative noise.
         """
         from scipy.optimize import nnls
 
@@ -272,8 +273,10 @@ class DynamicSINDy:
         theta = np.concatenate(thetas)
         resid = np.concatenate([d - p for d, p in zip(self.x_dot_, fitted, strict=True)])
         out = np.zeros(self.support_.shape)
+        constant = np.ptp(theta**2, axis=0) <= 1e-12 * (np.abs(theta**2).max(axis=0) + 1e-300)
         for i in range(resid.shape[1]):
-            cols = np.flatnonzero(self.support_[i])
+            out[i, self.support_[i] & constant] = np.nan
+            cols = np.flatnonzero(self.support_[i] & ~constant)
             design = np.column_stack([np.ones(theta.shape[0]), theta[:, cols] ** 2])
             scale = np.sqrt(np.mean(design**2, axis=0))
             scale[scale == 0] = 1.0

@@ -41,6 +41,17 @@ def test_windowed_recovers_the_pieces(switched, method):
     assert np.all(coefs.std == 0)
 
 
+def test_windowed_switch_inside_a_window(switched):
+    """Three windows: the switch at 12.5 falls inside the middle one, whose coefficient
+    is a least-squares mix of -1 and -4; the outer windows are exact."""
+    model = WindowedSINDy(LINEAR, n_windows=3).fit(switched.x, switched.t,
+                                                   x_dot=switched.x_dot,
+                                                   feature_names=["x", "y"])
+    a = model.window_coef_[:, 0, 1]
+    np.testing.assert_allclose(a[[0, 2]], [-1.0, -4.0], atol=1e-6)
+    assert -4.0 < a[1] < -1.0
+
+
 def test_windowed_default_windows_and_interpolation(switched):
     """With noise and the default window count the pieces are still found; linear
     interpolation joins window centres."""
@@ -123,6 +134,9 @@ def test_switching_lds_errors(switched):
     with pytest.raises(ValueError, match="true_labels must have shape \\(2000,\\)"):
         seg.accuracy(np.zeros(10))
     assert np.isinf(switch_time_errors([], [1.0, 2.0])).all()
+    # more states found than true classes: the best one-to-one matching
+    three = Segmentation("slds", np.arange(6.0), np.array([0, 0, 1, 1, 2, 2]), 3, 0.0)
+    assert three.accuracy([0, 0, 1, 1, 1, 1]) == pytest.approx(4 / 6)
 
 
 def test_missing_ssm_says_how_to_install(monkeypatch):

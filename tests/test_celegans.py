@@ -130,6 +130,38 @@ def test_loader_errors(tmp_path, two_worms):
                                 labels_index=5)
 
 
+def test_folder_skips_other_files_and_tolerates_foreign_labels(tmp_path, two_worms):
+    from scipy.io import savemat
+
+    folder = tmp_path / "wbdata"
+    celegans.write_kato_folder(folder, two_worms)
+    savemat(folder / "AAA_notes.mat", {"notes": np.ones(3)})  # sorts first; not a worm
+    celegans.write_wt_nostim(folder / "WT_NoStim.mat", two_worms)
+    loaded = celegans.load_kato(folder)
+    assert [r.name for r in loaded] == ["TS_a", "TS_b"]
+    assert all(r.states is not None for r in loaded)
+    other = [celegans.switching_worm(n_frames=300, n_neurons=5, seed=9, name="X")[0]]
+    celegans.write_kato_folder(tmp_path / "labels_only", other)  # 300 labels, not 400
+    (tmp_path / "labels_only" / "sevenStateColoring.mat").replace(
+        folder / "sevenStateColoring.mat")
+    with pytest.warns(UserWarning, match="without behaviour labels"):
+        loaded = celegans.load_kato(folder)
+    assert all(r.states is None for r in loaded)
+
+
+def test_v73_file_with_another_layout_is_refused(tmp_path):
+    import h5py
+
+    with h5py.File(tmp_path / "odd.mat", "w") as f:
+        g = f.create_group("data")
+        g.create_dataset("deltaFOverF", data=np.ones((3, 60)))
+        g.create_dataset("tv", data=np.arange(60.0))
+        g.create_dataset("fps", data=2.8)
+    with pytest.raises(ValueError, match="odd.mat: struct 'data' is not laid out like "
+                                         "WT_NoStim.mat"):
+        celegans.load_kato(tmp_path / "odd.mat")
+
+
 def test_recording_validation_and_component():
     t = np.arange(100) / 2.8
     with pytest.raises(ValueError, match="traces must be \\(n_frames, n_neurons\\)"):
@@ -154,6 +186,12 @@ def test_fit_errors():
         celegans.fit_switching_model(np.zeros(10))
     with pytest.raises(ValueError, match="data is empty"):
         celegans.fit_switching_model([])
+    rec = celegans.switching_worm(n_frames=60, n_neurons=5, seed=0)[0]
+    with pytest.raises(ValueError, match="test_half_width must be an int >= 2"):
+        celegans.fit_switching_model(rec, stage_one=False, test_half_width=1)
+    with pytest.raises(ValueError, match="need at least 82 frames per worm; the shortest "
+                                         "worm has 60"):
+        celegans.fit_switching_model(rec, stage_one=False, test_half_width=20)
 
 
 def test_shared_cubic_and_per_worm_levels_without_stage_one():

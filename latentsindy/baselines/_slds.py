@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import itertools
 import sys
 import types
 import warnings
@@ -92,15 +91,14 @@ class Segmentation:
         if true.shape != self.labels.shape:
             raise ValueError(f"true_labels must have shape {self.labels.shape}; got "
                              f"{true.shape}.")
-        found = np.unique(self.labels)
-        classes = np.unique(true)
-        best = 0.0
-        for perm in itertools.permutations(classes, min(len(classes), len(found))):
-            mapped = np.full(self.labels.shape, -1)
-            for f, c in zip(found, perm, strict=False):
-                mapped[self.labels == f] = c
-            best = max(best, float(np.mean(mapped == true)))
-        return best
+        from scipy.optimize import linear_sum_assignment
+
+        found, f_idx = np.unique(self.labels, return_inverse=True)
+        classes, c_idx = np.unique(true, return_inverse=True)
+        confusion = np.zeros((found.size, classes.size))
+        np.add.at(confusion, (f_idx, c_idx), 1.0)
+        rows, cols = linear_sum_assignment(-confusion)  # one found state per true class
+        return float(confusion[rows, cols].sum() / true.size)
 
 
 def switch_time_errors(found, true) -> np.ndarray:

@@ -6,9 +6,13 @@ choose that shared support:
 
 * ``method="group"``: the l_{2,0} group-sparse problem
   ``min sum_i ||Theta_i xi_i - xdot_i||^2 + gamma * #{terms whose coefficients across
-  windows are not all zero}``, solved by group hard-iterative thresholding (a gradient
-  step per window, then the terms whose root-mean-square coefficient across windows is
-  below ``threshold`` are removed, then a least-squares refit on the support).
+  windows are not all zero}``, solved by the supplement's group hard-iterative
+  thresholding: a gradient step in every window from the current coefficients, then
+  the support becomes the terms whose root-mean-square coefficient across windows
+  reaches ``threshold`` (``gamma = M * threshold^2`` in normalised units; a term may
+  leave or come back), then a least-squares refit on that support, until the support
+  stops changing. From the least-squares start the step leaves kept terms unchanged
+  (their gradient is zero) and offers pruned ones back through the residual.
 * ``method="stlsq"``: sequential thresholding on each term's coefficient averaged (in
   absolute value) over windows; the supplement found it the more effective of the two.
 
@@ -48,7 +52,8 @@ class WindowedSINDy:
         the variation; too many leave short, ill-conditioned windows whose coefficients
         jump from one to the next. (Held-out samples inside a window do not work as a
         criterion: smoothed derivatives are correlated, and any local fit predicts its
-        own window's gaps, so it picks the most windows.)
+        own window's gaps, so it picks the most windows.) M = 1 is never chosen by
+        default: coefficients that do not vary come out nearly equal in two windows.
     method : {"stlsq", "group"}
         Averaged-coefficient sequential thresholding, or group hard thresholding.
     threshold : float
@@ -176,18 +181,18 @@ class WindowedSINDy:
         p, n_states = a.shape[1], b.shape[1]
         coef = np.zeros((len(blocks), n_states, p))
         support = np.ones((n_states, p), dtype=bool)
+        step = (1.0 / max(np.linalg.norm(theta, 2) ** 2 for theta, _ in blocks)
+                if self.method == "group" else 0.0)
         for j in range(n_states):
             keep = np.ones(p, dtype=bool)
             xi = _lstsq(blocks, j, keep)
             for _ in range(int(self.max_iter)):
                 if self.method == "group":  # gradient step, then group hard threshold
-                    step = 1.0 / max(np.linalg.norm(theta, 2) ** 2 for theta, _ in blocks)
                     xi = np.stack([x - step * th.T @ (th @ x - rhs[:, j])
                                    for x, (th, rhs) in zip(xi, blocks, strict=True)])
-                    size = np.sqrt(np.mean(xi**2, axis=0))
-                else:
-                    size = np.mean(np.abs(xi), axis=0)
-                new = keep & (size >= self.threshold)
+                    new = np.sqrt(np.mean(xi**2, axis=0)) >= self.threshold
+                else:  # sequential thresholding of window-averaged |coefficients|
+                    new = keep & (np.mean(np.abs(xi), axis=0) >= self.threshold)
                 xi = _lstsq(blocks, j, new)
                 if np.array_equal(new, keep):
                     break

@@ -17,6 +17,7 @@ a ``ValueError`` naming the file and what was missing.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -39,19 +40,44 @@ def load_kato(path, *, trace: str | None = None) -> list[WormRecording]:
         files = worm_files(path)
         if not files:
             raise ValueError(f"{path}: no per-worm .mat files in this folder.")
-        labels = path / LABELS_FILE
-        return [load_kato_worm(f, labels=labels if labels.exists() else None,
-                               labels_index=i, trace=trace) for i, f in enumerate(files)]
+        return [_with_optional_labels(f, i, trace) for i, f in enumerate(files)]
     _check_file(path)
     if _is_hdf5(path):
         return load_wt_nostim(path, trace=trace)
+    return [_with_optional_labels(path, None, trace)]
+
+
+def _with_optional_labels(path, index, trace):
+    """A worm with the labels file beside it when there is one and it fits; a labels
+    file that does not fit (other worms, other frame counts) gives a warning and no
+    labels, since the labels are optional here."""
     labels = path.parent / LABELS_FILE
-    return [load_kato_worm(path, labels=labels if labels.exists() else None, trace=trace)]
+    if not labels.exists():
+        return load_kato_worm(path, trace=trace)
+    try:
+        return load_kato_worm(path, labels=labels, labels_index=index, trace=trace)
+    except ValueError as err:
+        if LABELS_FILE not in str(err):
+            raise
+        warnings.warn(f"{err} Loading {path.name} without behaviour labels.", stacklevel=3)
+        return load_kato_worm(path, trace=trace)
 
 
 def worm_files(folder) -> list[Path]:
-    """Per-worm .mat files of a folder, sorted by name (the labels file's order)."""
-    return sorted(p for p in Path(folder).glob("*.mat") if p.name != LABELS_FILE)
+    """Per-worm files of a folder (MATLAB v5 files holding ``wbData``), sorted by name
+    (the labels file's order); other ``.mat`` files are skipped."""
+    from scipy.io import whosmat
+
+    out = []
+    for p in sorted(Path(folder).glob("*.mat")):
+        if p.name == LABELS_FILE or _is_hdf5(p):
+            continue
+        try:
+            if any(name == "wbData" for name, _, _ in whosmat(p)):
+                out.append(p)
+        except Exception:  # noqa: BLE001 - not a MAT file: not a worm file either
+            continue
+    return out
 
 
 def load_kato_worm(path, *, labels=None, labels_index: int | None = None,
@@ -84,8 +110,8 @@ def load_kato_worm(path, *, labels=None, labels_index: int | None = None,
     states = state_names = None
     if labels is not None:
         if labels_index is None:
-            siblings = worm_files(path.parent)
-            labels_index = [p.name for p in siblings].index(path.name)
+            siblings = [p.name for p in worm_files(path.parent)]
+            labels_index = siblings.index(path.name) if path.name in siblings else -1
         states, state_names = _seven_states(Path(labels), labels_index, t.size)
     return WormRecording(path.stem, t, traces, names, fps, states, state_names)
 
@@ -99,33 +125,44 @@ def load_wt_nostim(path, *, trace: str | None = None) -> list[WormRecording]:
         raise ValueError(f"{path}: not a MATLAB v7.3 (HDF5) file; for per-worm v5 files "
                          f"use load_kato_worm.")
     with h5py.File(path, "r") as f:
-        roots = [k for k in f if not k.startswith("#")]
+        roots = [k for k in f if not k.startswith("#") and isinstance(f[k], h5py.Group)]
+        structs = [k for k in roots if _matlab_class(f[k]) == "struct"]
+        roots = structs or roots
         if not roots:
             raise ValueError(f"{path}: no struct at the top level.")
-        root = f[roots[0]]
-        fields = set(root.keys())
-        field = _trace_field(fields, trace, path)
-        for need in ("tv", "fps"):
-            if need not in fields:
-                raise ValueError(f"{path}: struct '{roots[0]}' has no field '{need}'; "
-                                 f"fields are {sorted(fields)}.")
-        n = root[field].size
-        out = []
-        for w in range(n):
-            traces = np.asarray(_deref(f, root[field], w), dtype=float).T
-            t = np.asarray(_deref(f, root["tv"], w), dtype=float).ravel()
-            fps = float(np.asarray(_deref(f, root["fps"], w)).ravel()[0])
-            names = (tuple(_h5_name(f, r) for r in np.ravel(_deref(f, root["NeuronNames"], w)))
-                     if "NeuronNames" in fields else ("",) * traces.shape[1])
-            if len(names) != traces.shape[1]:
-                names = ("",) * traces.shape[1]
-            name = (_h5_text(f[root["dataset"][()].ravel()[w]]) if "dataset" in fields
-                    else f"{roots[0]}_{w}")
-            states = state_names = None
-            if "States" in fields:
-                states, state_names = _h5_states(f[np.ravel(root["States"][()])[w]], t.size)
-            out.append(WormRecording(name or f"{roots[0]}_{w}", t, traces, names, fps,
-                                     states, state_names))
+        try:
+            return _read_worms(f, roots[0], path, trace)
+        except (KeyError, TypeError, AttributeError, IndexError, ValueError) as err:
+            if isinstance(err, ValueError) and str(path) in str(err):
+                raise
+            raise ValueError(f"{path}: struct '{roots[0]}' is not laid out like "
+                             f"WT_NoStim.mat (one cell entry per worm): {err}") from None
+
+
+def _read_worms(f, root_name, path, trace):
+    root = f[root_name]
+    fields = set(root.keys())
+    field = _trace_field(fields, trace, path)
+    for need in ("tv", "fps"):
+        if need not in fields:
+            raise ValueError(f"{path}: struct '{root_name}' has no field '{need}'; "
+                             f"fields are {sorted(fields)}.")
+    out = []
+    for w in range(root[field].size):
+        traces = np.asarray(_deref(f, root[field], w), dtype=float).T
+        t = np.asarray(_deref(f, root["tv"], w), dtype=float).ravel()
+        fps = float(np.asarray(_deref(f, root["fps"], w)).ravel()[0])
+        names = (tuple(_h5_name(f, r) for r in np.ravel(_deref(f, root["NeuronNames"], w)))
+                 if "NeuronNames" in fields else ())
+        if len(names) != traces.shape[1]:
+            names = ("",) * traces.shape[1]
+        name = (_h5_text(f[np.ravel(root["dataset"][()])[w]]) if "dataset" in fields
+                else "")
+        states = state_names = None
+        if "States" in fields:
+            states, state_names = _h5_states(f[np.ravel(root["States"][()])[w]], t.size)
+        out.append(WormRecording(name or f"{root_name}_{w}", t, traces, names, fps,
+                                 states, state_names))
     return out
 
 
@@ -212,7 +249,9 @@ def _seven_states(path, index, n_frames):
     series = ([d["stateTimeSeries"] for d in dataset] if isinstance(dataset, list)
               else _cells(dataset["stateTimeSeries"]))
     if not 0 <= index < len(series):
-        raise ValueError(f"{path}: labels for {len(series)} worms; asked for worm {index}.")
+        raise ValueError(f"{path}: labels for {len(series)} worms; asked for worm {index}. "
+                         "Pass labels_index (the worm's position among the per-worm files "
+                         "sorted by name).")
     codes = np.asarray(series[index], dtype=float).ravel()
     if codes.size != n_frames:
         raise ValueError(f"{path}: worm {index} has {codes.size} labels for {n_frames} "
@@ -223,7 +262,16 @@ def _seven_states(path, index, n_frames):
 
 
 def _deref(f, refs, i):
-    return f[np.ravel(refs[()])[i]][()]
+    """Entry i of a cell field (a dataset of object references)."""
+    data = refs[()]
+    if not (isinstance(data, np.ndarray) and data.dtype == object):
+        raise TypeError(f"field '{refs.name}' is not a cell of references")
+    return f[np.ravel(data)[i]][()]
+
+
+def _matlab_class(obj) -> str:
+    value = obj.attrs.get("MATLAB_class", b"")
+    return value.decode() if isinstance(value, bytes) else str(value)
 
 
 def _h5_text(obj) -> str:

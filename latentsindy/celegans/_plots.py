@@ -12,7 +12,7 @@ def plot_model(model, *, path=None, truth=None, worm: int = 0):
     """Four panels for one worm: x from the data against the model integrated under the
     switch from the first frame; the raw input with the
     two-level switch (and the true switch times when ``truth`` has ``switch_times``);
-    the model's x-nullcline ``f(x) + u`` per level with its fixed points (filled: stable);
+    ``f(x) + u`` per level (ydot on the axis y = 0) with its fixed points (filled: stable);
     and the phase plane (x, y) of data and model.
 
     Returns the matplotlib figure; saved to ``path`` when given.

@@ -3,9 +3,11 @@
 :func:`two_level_switch` is the principled segmentation: the two levels and the
 labels minimise ``sum_t (u_t - level[s_t])^2 + penalty * (number of switches)``, found
 by alternating the level means with an exact dynamic programme over the labels
-(Viterbi on a two-state chain). The default penalty is the Bayesian information
-criterion's: a switch adds one parameter (its time), worth ``2 sigma^2 log(n)`` in
-squared-error units, with ``sigma^2`` the variance of u around its nearest level.
+(Viterbi on a two-state chain). The default penalty follows the Bayesian information
+criterion: a switch adds one parameter (its time), which BIC charges ``sigma^2 log(n)``
+in squared-error units (``sigma^2``: the variance of u around its nearest level). We
+charge twice that, because an inferred u is smoothed and autocorrelated, so it holds
+fewer independent samples than n and BIC's charge would admit spurious short switches.
 :func:`sigmoid_switch` is the seed paper's recipe, kept for comparison.
 """
 
@@ -66,7 +68,8 @@ def two_level_switch(u, t, *, penalty: float | None = None) -> Switch:
     t : array (n_times,)
         Its sample times (increasing).
     penalty : float, optional
-        Cost of one switch in squared-error units; default ``2 sigma^2 log(n)`` (BIC).
+        Cost of one switch in squared-error units; default ``2 sigma^2 log(n)`` (twice
+        BIC's charge for one parameter; see the module notes).
 
     Returns
     -------

@@ -92,7 +92,11 @@ def fit_shared(xs, labels, dts, m):
     resid = b - a @ sol
     dof = max(1, b.size - int(keep.sum()))
     s2 = float(resid @ resid) / dof
-    cov = s2 * np.linalg.pinv(a[:, keep].T @ a[:, keep])
+    # neighbouring test functions overlap (stride m/2, width 2m + 1), so each sample
+    # enters about (2m + 1) / stride rows: their residuals are correlated and the
+    # independent-rows covariance is too small by about that factor
+    overlap = (2 * m + 1) / max(1, m // 2)
+    cov = overlap * s2 * np.linalg.pinv(a[:, keep].T @ a[:, keep])
     se = np.sqrt(np.clip(np.diag(cov)[:4], 0.0, None))
     levels = sol[4:].reshape(n_rec, 2)
     for i, lab in enumerate(labels):  # an unvisited level keeps the visited one

@@ -83,7 +83,9 @@ class SwitchingModel:
     Attributes
     ----------
     cubic, cubic_std : dict
-        Shared coefficients of ``x^3, x^2, x, y`` and their standard errors.
+        Shared coefficients of ``x^3, x^2, x, y`` and their standard errors (from the
+        weak-form regression, inflated for the overlap of its test functions; noise in
+        x also biases them, by about ``3 a sigma^2`` for the x coefficient).
     stage_one_cubic : tuple of dict
         Each worm's constants from stage one alone (free u), for comparison.
     worms : tuple of WormFit
@@ -102,8 +104,8 @@ class SwitchingModel:
     rounds: int
     converged: bool
 
-    def equations(self, worm: int = 0):
-        """Sympy equations ``(xdot, ydot)`` with the worm's input as symbol ``u``."""
+    def equations(self):
+        """Sympy equations ``(xdot, ydot)``; each worm's input is the symbol ``u``."""
         import sympy as sp
 
         x, y, u = sp.symbols("x y u")
@@ -151,7 +153,7 @@ def fit_switching_model(data, *, stage_one: bool = True, training=None, center: 
         Recordings (their first principal component is used) or components.
     stage_one : bool
         Read the raw input with dynamic SINDy (the paper's route). ``False`` starts
-        from the weak-form input under a constant-u fit instead (faster, no torch).
+        from the weak-form input under a constant-u fit instead (faster: no training).
     training : TrainingOptions or dict, optional
         Stage one's training options.
     center : bool
@@ -177,9 +179,16 @@ def fit_switching_model(data, *, stage_one: bool = True, training=None, center: 
     comps = [_component(item, center) for item in items]
     ys = [AdaptiveSavitzkyGolay()._differentiate(c.x[:, None], c.t)[:, 0] for c in comps]
     dts = [float(np.median(np.diff(c.t))) for c in comps]
+    if test_half_width is not None and (not isinstance(test_half_width, int | np.integer)
+                                        or test_half_width < 2):
+        raise ValueError(f"test_half_width must be an int >= 2 (samples); got "
+                         f"{test_half_width!r}.")
     m = test_half_width or int(np.median([half_width(c.x) for c in comps]))
-    if m < 2 or any(c.x.size < 4 * m + 2 for c in comps):
-        raise ValueError(f"test_half_width {m} needs at least {4 * m + 2} frames per worm.")
+    short = min(c.x.size for c in comps)
+    if short < 4 * m + 2:
+        raise ValueError(f"test functions of half-width {m} samples need at least "
+                         f"{4 * m + 2} frames per worm; the shortest worm has {short}. "
+                         "Pass a smaller test_half_width.")
     raw, raw_std, stage_cubic = [], [], []
     for c, y, dt in zip(comps, ys, dts, strict=True):
         u, s, cubic = (_stage_one(c, y, training, seed, verbose) if stage_one
@@ -191,9 +200,7 @@ def fit_switching_model(data, *, stage_one: bool = True, training=None, center: 
                                                                            strict=True)]
     converged, rounds = False, 0
     for rounds in range(1, max_rounds + 1):  # noqa: B007 - rounds is reported
-        consts, levels, se, _ = fit_shared([c.x for c in comps], [s.labels for s in switches],
-                                           dts, m)
-        inputs = [local_input(c.x, dt, consts, m) for c, dt in zip(comps, dts, strict=True)]
+        consts, levels, se, inputs = _refit(comps, switches, dts, m)
         new = [two_level_switch(u, c.t, penalty=penalty) for u, c in zip(inputs, comps,
                                                                          strict=True)]
         if all(np.array_equal(a.labels, b.labels) for a, b in zip(new, switches,
@@ -201,11 +208,16 @@ def fit_switching_model(data, *, stage_one: bool = True, training=None, center: 
             converged = True
             break
         switches = new
+    if not converged:  # constants, levels and inputs of the switch that is reported
+        consts, levels, se, inputs = _refit(comps, switches, dts, m)
     cubic = dict(zip(ORDER, (float(v) for v in consts), strict=True))
     cubic_std = dict(zip(ORDER, (float(v) for v in se), strict=True))
     worms = []
     for i, c in enumerate(comps):
-        sw = Switch(c.t, switches[i].labels, levels[i].copy(), switches[i].penalty)
+        labels, lv = switches[i].labels, levels[i].copy()
+        if lv[0] > lv[1]:  # label 0 is the low level
+            labels, lv = 1 - labels, lv[::-1].copy()
+        sw = Switch(c.t, labels, lv, switches[i].penalty)
         free = simulate(cubic, sw, c.t, c.x, ys[i])
         points = tuple((float(lv), fixed_points(cubic, float(lv))) for lv in sw.levels)
         worms.append(WormFit(c.name, c.t, c.x, ys[i], raw[i], raw_std[i],
@@ -213,6 +225,15 @@ def fit_switching_model(data, *, stage_one: bool = True, training=None, center: 
                              nrmse(free, c.x), points, c.explained))
     return SwitchingModel(cubic, cubic_std, tuple(stage_cubic), tuple(worms), m, rounds,
                           converged)
+
+
+def _refit(comps, switches, dts, m):
+    """Shared constants and per-worm levels under the switches, and u(t) read through
+    them."""
+    consts, levels, se, _ = fit_shared([c.x for c in comps], [s.labels for s in switches],
+                                       dts, m)
+    inputs = [local_input(c.x, dt, consts, m) for c, dt in zip(comps, dts, strict=True)]
+    return consts, levels, se, inputs
 
 
 def _component(item, center) -> Component:
