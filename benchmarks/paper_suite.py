@@ -27,7 +27,8 @@ Usage::
 
 Tables go to stdout (Markdown), raw numbers to benchmarks/output/paper_suite.json and
 figures (the varying coefficient against the truth, case by case and method by method,
-as the paper's figures 2, 4 and 7 show them) to docs/figures/, which the README shows.
+as the paper's figures 2, 4 and 7 show them) to docs/figures/, which the README shows
+(``--quick`` puts its figures in benchmarks/output/).
 """
 
 from __future__ import annotations
@@ -182,7 +183,7 @@ def table(results):
                      for line in lines)
 
 
-def figure(name, cases, all_series, all_data):
+def figure(name, cases, all_series, all_data, folder=FIGURES):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -210,8 +211,8 @@ def figure(name, cases, all_series, all_data):
             if method == methods[0]:
                 ax.set_ylabel(f"{case.shape}\n{state}:{feature}", fontsize=7)
     fig.tight_layout()
-    FIGURES.mkdir(parents=True, exist_ok=True)
-    fig.savefig(FIGURES / f"paper_{name}.png", dpi=70)
+    folder.mkdir(parents=True, exist_ok=True)
+    fig.savefig(folder / f"paper_{name}.png", dpi=70)
     plt.close(fig)
 
 
@@ -231,8 +232,8 @@ def main(quick=False, seed=0):
             results[case.name] = rows
             all_series[case.name], all_data[case.name] = series, data
             print(f"done {case.name} ({time.perf_counter() - total:.0f} s)", flush=True)
-        if cases:
-            figure(group, cases, all_series, all_data)
+        if cases:  # the quick preset must not overwrite the README's figures
+            figure(group, cases, all_series, all_data, OUT if quick else FIGURES)
     unc = uncertainty(UNCERTAINTY_STDS[1::2] if quick else UNCERTAINTY_STDS, seed)
     print(table(results))
     print("\n| true coefficient std | across samples | around smooth mean | from residuals | "
