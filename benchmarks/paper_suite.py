@@ -242,7 +242,8 @@ def main(quick=False, seed=0):
         print(f"| {u['true_std']} | {u['across_samples']:.4f} | "
               f"{u['around_smooth_mean']:.4f} | {u['from_residuals']:.4f} | "
               f"{u['residual_std']:.4f} |")
-    print(f"\ntotal wall time {time.perf_counter() - total:.0f} s")
+    print(f"\ntotal wall time {time.perf_counter() - total:.0f} s; figures in "
+          f"{OUT if quick else FIGURES}, raw numbers in {OUT / 'paper_suite.json'}")
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "paper_suite.json").write_text(json.dumps(
         {"cases": results, "uncertainty": unc}, indent=1, default=float))

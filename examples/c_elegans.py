@@ -52,16 +52,19 @@ def main(layout="v5", data=None, n_frames=3000, n_worms=1, stage_one=True, train
         pairs = [celegans.switching_worm(n_frames=n_frames, seed=seed + i,
                                          name=f"synthetic_worm_{i}") for i in range(n_worms)]
         recordings, truths = [p[0] for p in pairs], [p[1] for p in pairs]
-        folder = Path(tempfile.mkdtemp(prefix="latentsindy_worms_"))
-        if layout == "v5":
-            celegans.write_kato_folder(folder / "wbdata", recordings)
-            data = folder / "wbdata"
-        elif layout == "v7.3":
-            data = celegans.write_wt_nostim(folder / "WT_NoStim.mat", recordings)
-        else:
+        if layout not in ("v5", "v7.3"):
             raise ValueError(f"layout must be 'v5' or 'v7.3'; got {layout!r}.")
-        print(f"synthetic worm(s) written in the {layout} layout: {data}")
-    recordings = celegans.load_kato(data)
+        with tempfile.TemporaryDirectory(prefix="latentsindy_worms_") as tmp:
+            folder = Path(tmp)
+            if layout == "v5":
+                data = folder / "wbdata"
+                celegans.write_kato_folder(data, recordings)
+            else:
+                data = celegans.write_wt_nostim(folder / "WT_NoStim.mat", recordings)
+            print(f"synthetic worm(s) written in the {layout} layout to a temporary {data}")
+            recordings = celegans.load_kato(data)  # read back; the files go afterwards
+    else:
+        recordings = celegans.load_kato(data)
     for rec in recordings:
         print(f"{rec.name}: {rec.traces.shape[1]} neurons, {rec.t.size} frames at "
               f"{rec.fps:.2f} Hz")

@@ -84,7 +84,8 @@ def test_windowed_errors(switched, kw, fit_kw, match):
 
 
 def test_windowed_input_errors(switched):
-    with pytest.raises(ValueError, match="fits one trajectory; got a list"):
+    with pytest.raises(ValueError, match="fits one trajectory, a 2-D array of shape "
+                                         "\\(n_times, n_states\\); got a list of 2 arrays"):
         WindowedSINDy(LINEAR).fit([switched.x, switched.x], switched.t)
     with pytest.raises(RuntimeError, match="not fitted"):
         WindowedSINDy(LINEAR).coefficients()
@@ -128,8 +129,10 @@ def test_switching_lds_errors(switched):
         switching_lds(switched.x, switched.t, method="hmm")
     with pytest.raises(ValueError, match="n_states"):
         switching_lds(switched.x, switched.t, n_states=0)
-    with pytest.raises(ValueError, match="segments one trajectory"):
+    with pytest.raises(ValueError, match="segments one trajectory, a 2-D array"):
         switching_lds([switched.x], switched.t)
+    nested = switching_lds(switched.x[::10].tolist(), switched.t[::10], n_iter=2)
+    assert nested.labels.shape == (200,)  # a nested list of numbers is one trajectory
     seg = Segmentation("slds", switched.t, np.zeros(2000, dtype=int), 2, 0.0)
     with pytest.raises(ValueError, match="true_labels must have shape \\(2000,\\)"):
         seg.accuracy(np.zeros(10))

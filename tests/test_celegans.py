@@ -104,7 +104,8 @@ def test_v73_round_trip(tmp_path, two_worms):
 def test_loader_errors(tmp_path, two_worms):
     from scipy.io import savemat
 
-    with pytest.raises(ValueError, match="no such file"):
+    with pytest.raises(ValueError, match="missing.mat: no such file or folder. Pass "
+                                         "WT_NoStim.mat"):
         celegans.load_kato(tmp_path / "missing.mat")
     (tmp_path / "junk.mat").write_bytes(b"not a mat file at all" * 10)
     with pytest.raises(ValueError, match="junk.mat: not a readable MATLAB v5 file"):

@@ -24,11 +24,12 @@ import io
 import sys
 import types
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from .. import _validation as val
+from ._inputs import one_trajectory
 
 METHODS = {"arhmm": None, "slds": "standard", "rslds": "recurrent"}
 INSTALL = ('pip install numpy cython wheel setuptools && pip install --no-build-isolation '
@@ -73,8 +74,8 @@ class Segmentation:
     """
 
     method: str
-    times: np.ndarray
-    labels: np.ndarray
+    times: np.ndarray = field(repr=False)
+    labels: np.ndarray = field(repr=False)
     n_states: int
     log_likelihood: float
 
@@ -137,9 +138,7 @@ def switching_lds(x, t, *, method: str = "slds", n_states: int = 2, time_input: 
         raise ValueError(f"method must be one of {sorted(METHODS)}; got {method!r}.")
     n_states = val.check_positive(n_states, "n_states", integer=True)
     n_iter = val.check_positive(n_iter, "n_iter", integer=True)
-    if isinstance(x, list | tuple):
-        raise ValueError("switching_lds segments one trajectory; got a list.")
-    (data,) = val.as_trajectories(x, "x")
+    (data,) = one_trajectory(x, "switching_lds segments")
     (times,) = val.as_times(t, [data])
     ssm = import_ssm()
     scale = data.std(axis=0)

@@ -32,6 +32,7 @@ from .. import _validation as val
 from .._derivatives import AdaptiveSavitzkyGolay
 from .._library import check_library, fit_library
 from .._results import CoefficientSeries
+from ._inputs import one_trajectory
 
 _METHODS = ("stlsq", "group")
 _INTERPOLATIONS = ("linear", "constant")
@@ -108,10 +109,7 @@ class WindowedSINDy:
                              f"{self.interpolation!r}.")
         val.check_positive(self.threshold, "threshold", allow_zero=True)
         val.check_positive(self.max_iter, "max_iter", integer=True)
-        if isinstance(x, list | tuple):
-            raise ValueError("WindowedSINDy fits one trajectory; got a list. Fit one model "
-                             "per trajectory.")
-        (traj,) = val.as_trajectories(x, "x")
+        (traj,) = one_trajectory(x, "WindowedSINDy fits")
         (times,) = val.as_times(t, [traj])
         names = val.check_feature_names(feature_names, traj.shape[1])
         library = check_library(self.library)

@@ -35,7 +35,11 @@ def load_kato(path, *, trace: str | None = None) -> list[WormRecording]:
     per-worm v5 files (with ``sevenStateColoring.mat`` beside them for the labels).
     ``trace`` picks the field (default: bleach-corrected ``deltaFOverF_bc`` when present).
     """
-    path = Path(path)
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise ValueError(f"{path}: no such file or folder. Pass WT_NoStim.mat (MATLAB "
+                         "v7.3), a wbdata/ folder of per-worm .mat files, or one worm's "
+                         ".mat file.")
     if path.is_dir():
         files = worm_files(path)
         if not files:
@@ -90,7 +94,7 @@ def load_kato_worm(path, *, labels=None, labels_index: int | None = None,
     """
     from scipy.io import loadmat
 
-    path = Path(path)
+    path = Path(path).expanduser()
     _check_file(path)
     try:
         content = loadmat(path, simplify_cells=True)
@@ -119,7 +123,7 @@ def load_kato_worm(path, *, labels=None, labels_index: int | None = None,
 def load_wt_nostim(path, *, trace: str | None = None) -> list[WormRecording]:
     """Every worm of ``WT_NoStim.mat`` (MATLAB v7.3 / HDF5; needs ``h5py``)."""
     h5py = _h5py()
-    path = Path(path)
+    path = Path(path).expanduser()
     _check_file(path)
     if not _is_hdf5(path):
         raise ValueError(f"{path}: not a MATLAB v7.3 (HDF5) file; for per-worm v5 files "

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -30,11 +30,11 @@ class WormRecording:
     """
 
     name: str
-    t: np.ndarray
-    traces: np.ndarray
-    neuron_names: tuple
+    t: np.ndarray = field(repr=False)
+    traces: np.ndarray = field(repr=False)
+    neuron_names: tuple = field(repr=False)
     fps: float
-    states: np.ndarray | None = None
+    states: np.ndarray | None = field(repr=False, default=None)
     state_names: tuple | None = None
 
     def __post_init__(self):
@@ -98,7 +98,7 @@ class Component:
     """
 
     name: str
-    t: np.ndarray
-    x: np.ndarray
-    loadings: np.ndarray
+    t: np.ndarray = field(repr=False)
+    x: np.ndarray = field(repr=False)
+    loadings: np.ndarray = field(repr=False)
     explained: float

@@ -13,7 +13,7 @@ fewer independent samples than n and BIC's charge would admit spurious short swi
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -36,8 +36,8 @@ class Switch:
         Cost of one switch used by the segmentation (squared-error units).
     """
 
-    times: np.ndarray
-    labels: np.ndarray
+    times: np.ndarray = field(repr=False)
+    labels: np.ndarray = field(repr=False)
     levels: np.ndarray
     penalty: float
 

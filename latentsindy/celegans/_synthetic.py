@@ -9,7 +9,7 @@ the worm's frame rate.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,9 +29,9 @@ class SwitchingTruth:
     """What generated a synthetic worm: x(t), the input u(t), its switch times, the
     cubic's coefficients and the two levels."""
 
-    t: np.ndarray
-    x: np.ndarray
-    u: np.ndarray
+    t: np.ndarray = field(repr=False)
+    x: np.ndarray = field(repr=False)
+    u: np.ndarray = field(repr=False)
     switch_times: np.ndarray
     cubic: dict
     levels: tuple

@@ -16,7 +16,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pysindy as ps
@@ -62,15 +62,15 @@ class WormFit:
     """
 
     name: str
-    t: np.ndarray
-    x: np.ndarray
-    y: np.ndarray
-    raw_u: np.ndarray
-    raw_u_std: np.ndarray
-    sigmoid_u: np.ndarray
-    input_u: np.ndarray
+    t: np.ndarray = field(repr=False)
+    x: np.ndarray = field(repr=False)
+    y: np.ndarray = field(repr=False)
+    raw_u: np.ndarray = field(repr=False)
+    raw_u_std: np.ndarray = field(repr=False)
+    sigmoid_u: np.ndarray = field(repr=False)
+    input_u: np.ndarray = field(repr=False)
     switch: Switch
-    free_run: np.ndarray
+    free_run: np.ndarray = field(repr=False)
     nrmse_free: float
     fixed_points: tuple
     explained: float
@@ -242,7 +242,8 @@ def _component(item, center) -> Component:
     if isinstance(item, Component):
         return item
     raise TypeError(f"expected a WormRecording or a Component; got {type(item).__name__}. "
-                    "Load files with latentsindy.celegans.load_kato.")
+                    "Load files with latentsindy.celegans.load_kato, or wrap traces you "
+                    "have: WormRecording(name, t, traces, neuron_names, fps).")
 
 
 def _stage_one(comp, y, training, seed, verbose):
