@@ -169,16 +169,12 @@ def table(results):
                   else "")
             if "accuracy" in r:
                 sw += f" (acc {r['accuracy']:.2f})"
-            lines.append(
-                f"| {case} | {method} | {r.get('worst_r2', float('nan')):.3f} | "
-                f"{r.get('const_err', float('nan')):.1%} | "
-                f"{'yes' if r.get('exact_support') else ('no' if 'exact_support' in r else '')}"
-                f" | {sw} | {r['coverage']:.2f} | {r['time']:.1f} |"
-                if "coverage" in r else
-                f"| {case} | {method} | {r.get('worst_r2', float('nan')):.3f} | "
-                f"{r.get('const_err', float('nan')):.1%} | "
-                f"{'yes' if r.get('exact_support') else ('no' if 'exact_support' in r else '')}"
-                f" | {sw} | | {r['time']:.1f} |")
+            support = ("yes" if r.get("exact_support") else
+                       "no" if "exact_support" in r else "")
+            coverage = f"{r['coverage']:.2f}" if "coverage" in r else ""
+            lines.append(f"| {case} | {method} | {r.get('worst_r2', float('nan')):.3f} | "
+                         f"{r.get('const_err', float('nan')):.1%} | {support} | {sw} | "
+                         f"{coverage} | {r['time']:.1f} |")
     return "\n".join(line.replace("| nan |", "| |").replace("| nan% |", "| |")
                      for line in lines)
 

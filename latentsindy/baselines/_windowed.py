@@ -26,10 +26,12 @@ threshold accordingly, or rescale the data).
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from .. import _validation as val
-from .._derivatives import AdaptiveSavitzkyGolay
+from .._derivatives import differentiate
 from .._library import check_library, fit_library
 from .._results import CoefficientSeries
 from ._inputs import one_trajectory
@@ -114,9 +116,9 @@ class WindowedSINDy:
         names = val.check_feature_names(feature_names, traj.shape[1])
         library = check_library(self.library)
         (theta,), features = fit_library(library, [traj], names)
-        if x_dot is None:
-            diff = self.differentiation_method or AdaptiveSavitzkyGolay()
-            xdot = np.asarray(diff._differentiate(traj, times), dtype=float)
+        if x_dot is None:  # a copy: the user's differentiation object is never mutated
+            (xdot,), _, _ = differentiate(copy.deepcopy(self.differentiation_method),
+                                          [traj], [times])
         else:
             (xdot,) = val.as_trajectories(x_dot, "x_dot")
             if xdot.shape != traj.shape:
