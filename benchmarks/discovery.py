@@ -48,10 +48,10 @@ from _scoring import (  # noqa: E402
 )
 
 from latentsindy import discover_hidden  # noqa: E402
-from latentsindy._closure import fit_closure  # noqa: E402
-from latentsindy._derivatives import AdaptiveSavitzkyGolay  # noqa: E402
-from latentsindy._field import ParametricSystem  # noqa: E402
-from latentsindy._refine import Problem  # noqa: E402
+from latentsindy._core.derivatives import AdaptiveSavitzkyGolay  # noqa: E402
+from latentsindy._stage_two.closure import fit_closure  # noqa: E402
+from latentsindy._stage_two.field import ParametricSystem  # noqa: E402
+from latentsindy._stage_two.refine import Problem  # noqa: E402
 
 NOISE = (0.0, 0.01, 0.05, 0.1)
 

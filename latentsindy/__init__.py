@@ -10,8 +10,15 @@ result types, :mod:`latentsindy.systems` (test beds with known truth) and
 from importlib.metadata import PackageNotFoundError, version
 
 from . import celegans, systems
-from ._batch import Run, discover_many
-from ._discovery import (
+from ._cli.batch import Run, discover_many
+from ._core.simulate import Simulation
+from ._files.load import load  # also registers the file formats with _core.saving
+from ._stage_one.coefficients import CoefficientSeries
+from ._stage_one.estimator import DynamicSINDy
+from ._stage_one.sequential_options import SequentialTrainingOptions
+from ._stage_one.training import TrainingOptions
+from ._stage_two.discover import discover_hidden
+from ._stage_two.result import (
     Alternative,
     HiddenComparison,
     HiddenDiscovery,
@@ -19,13 +26,6 @@ from ._discovery import (
     Refinement,
     Term,
 )
-from ._estimator import DynamicSINDy
-from ._hidden import discover_hidden
-from ._persist import load
-from ._results import CoefficientSeries
-from ._sequential import SequentialTrainingOptions
-from ._simulate import Simulation
-from ._training import TrainingOptions
 
 try:
     __version__ = version("latentsindy")

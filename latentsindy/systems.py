@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from ._shapes import Constant, FourierSeries, Sigmoid, Sinusoid, Switch, Switches
+from ._core.shapes import Constant, FourierSeries, Sigmoid, Sinusoid, Switch, Switches
 
 __all__ = [
     "Constant",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import _validation as val
+from .._core import validation as val
 
 
 def one_trajectory(x, who: str) -> list[np.ndarray]:

@@ -27,8 +27,9 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 
-from .. import _validation as val
+from .._core import validation as val
 from ._inputs import one_trajectory
 
 METHODS = {"arhmm": None, "slds": "standard", "rslds": "recurrent"}
@@ -92,8 +93,6 @@ class Segmentation:
         if true.shape != self.labels.shape:
             raise ValueError(f"true_labels must have shape {self.labels.shape}; got "
                              f"{true.shape}.")
-        from scipy.optimize import linear_sum_assignment
-
         found, f_idx = np.unique(self.labels, return_inverse=True)
         classes, c_idx = np.unique(true, return_inverse=True)
         confusion = np.zeros((found.size, classes.size))

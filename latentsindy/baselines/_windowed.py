@@ -30,10 +30,10 @@ import copy
 
 import numpy as np
 
-from .. import _validation as val
-from .._derivatives import differentiate
-from .._library import check_library, fit_library
-from .._results import CoefficientSeries
+from .._core import validation as val
+from .._core.derivatives import differentiate
+from .._core.library import check_library, fit_library
+from .._stage_one.coefficients import CoefficientSeries
 from ._inputs import one_trajectory
 
 _METHODS = ("stlsq", "group")

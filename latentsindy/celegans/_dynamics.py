@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .._simulate import integrate
+from .._core.simulate import integrate
 from ._switch import Switch
 
 ORDER = ("x^3", "x^2", "x", "y")

@@ -21,6 +21,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from scipy.io import loadmat, whosmat
 
 from ._recording import WormRecording
 
@@ -70,8 +71,6 @@ def _with_optional_labels(path, index, trace):
 def worm_files(folder) -> list[Path]:
     """Per-worm files of a folder (MATLAB v5 files holding ``wbData``), sorted by name
     (the labels file's order); other ``.mat`` files are skipped."""
-    from scipy.io import whosmat
-
     out = []
     for p in sorted(Path(folder).glob("*.mat")):
         if p.name == LABELS_FILE or _is_hdf5(p):
@@ -92,8 +91,6 @@ def load_kato_worm(path, *, labels=None, labels_index: int | None = None,
     position in it (default: the file's position among the ``.mat`` files of its folder
     sorted by name, as published).
     """
-    from scipy.io import loadmat
-
     path = Path(path).expanduser()
     _check_file(path)
     try:
@@ -239,8 +236,6 @@ def _first_name(entry) -> str:
 
 
 def _seven_states(path, index, n_frames):
-    from scipy.io import loadmat
-
     _check_file(path)
     try:
         content = loadmat(path, simplify_cells=True)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._plotting import _finish, pyplot
+from .._core.figures import finish, pyplot
 from ._dynamics import ORDER
 
 
@@ -51,4 +51,4 @@ def plot_model(model, *, path=None, truth=None, worm: int = 0):
     ax.plot(w.free_run, model_y, lw=0.8, label="model")
     ax.set(xlabel="x", ylabel="y = xdot", title="phase plane")
     ax.legend(fontsize=7)
-    return _finish(fig, path)
+    return finish(fig, path)

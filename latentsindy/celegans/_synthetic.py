@@ -14,8 +14,9 @@ from pathlib import Path
 
 import numpy as np
 from scipy.integrate import solve_ivp
+from scipy.io import savemat
 
-from ._loaders import LABELS_FILE
+from ._loaders import LABELS_FILE, _h5py
 from ._recording import WormRecording
 
 PAPER_CUBIC = {"x^3": -0.002, "x^2": 0.0087, "x": 0.05, "y": -0.22}
@@ -101,8 +102,6 @@ def switching_worm(*, n_frames: int = 3000, n_neurons: int = 100, fps: float = K
 def write_kato_folder(folder, recordings) -> list[Path]:
     """Write recordings as per-worm MATLAB v5 files plus ``sevenStateColoring.mat``
     (the layout of ``wbdata/``). Returns the worm files, sorted by name."""
-    from scipy.io import savemat
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -134,8 +133,6 @@ def write_kato_folder(folder, recordings) -> list[Path]:
 
 def write_wt_nostim(path, recordings, *, struct: str = "WT_NoStim") -> Path:
     """Write recordings in the layout of ``WT_NoStim.mat`` (MATLAB v7.3 / HDF5)."""
-    from ._loaders import _h5py
-
     h5py = _h5py()
     path = Path(path)
     refs_made = [0]

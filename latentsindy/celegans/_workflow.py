@@ -20,9 +20,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pysindy as ps
+import sympy as sp
 
-from .._derivatives import AdaptiveSavitzkyGolay
+from .._core.derivatives import AdaptiveSavitzkyGolay
+from .._stage_one.estimator import DynamicSINDy
 from ._dynamics import ORDER, FixedPoint, fixed_points, nrmse, simulate
+from ._plots import plot_model
 from ._recording import Component, WormRecording
 from ._switch import Switch, sigmoid_switch, two_level_switch
 from ._weak import fit_shared, half_width, local_input
@@ -106,8 +109,6 @@ class SwitchingModel:
 
     def equations(self):
         """Sympy equations ``(xdot, ydot)``; each worm's input is the symbol ``u``."""
-        import sympy as sp
-
         x, y, u = sp.symbols("x y u")
         powers = {"x^3": x**3, "x^2": x**2, "x": x, "y": y}
         rhs = sum((sp.Float(self.cubic[k], 4) * powers[k] for k in ORDER), u)
@@ -136,8 +137,6 @@ class SwitchingModel:
     def plot(self, path=None, *, truth=None):
         """Data vs model, the input and its switch, and the nullclines with fixed points
         (see :func:`latentsindy.celegans.plot_model`)."""
-        from ._plots import plot_model
-
         return plot_model(self, path=path, truth=truth)
 
 
@@ -247,8 +246,6 @@ def _component(item, center) -> Component:
 
 
 def _stage_one(comp, y, training, seed, verbose):
-    from .._estimator import DynamicSINDy
-
     model = DynamicSINDy(ps.PolynomialLibrary(degree=3), support=SUPPORT,
                          time_varying=TIME_VARYING, training=training, seed=seed,
                          verbose=verbose)

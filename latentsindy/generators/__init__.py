@@ -1,4 +1,11 @@
-"""Coefficient generators (stage one's deep generative models)."""
+"""Stage one's deep generative models: a normalised series to coefficient series.
+
+Public because it is the extension point: a new generator implements
+:meth:`Generator.sample` and is registered in ``GENERATORS``; everything else (library,
+masks, constants, loss, pruning) belongs to the estimator in ``latentsindy._stage_one``.
+``timevae`` reads the whole series at once, ``hypersindy`` (dynamic HyperSINDy) window
+by window.
+"""
 
 from ._base import Generator, make_options
 from .hypersindy import HyperSINDy, HyperSINDyOptions

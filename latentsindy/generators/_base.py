@@ -34,7 +34,7 @@ class Generator(nn.Module):
     """
 
     Options: type = object
-    sequential = False  # True: trained window by window (see latentsindy._sequential)
+    sequential = False  # True: trained window by window (see latentsindy._stage_one.sequential)
 
     def sample(self, inputs: torch.Tensor, n_samples: int) -> tuple[torch.Tensor, torch.Tensor]:
         raise NotImplementedError

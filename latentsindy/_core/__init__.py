@@ -1,0 +1,12 @@
+"""The shared numerical core: what both stages, the baselines and the C. elegans
+workflow use, and nothing that knows about either stage.
+
+* ``validation``: checks on user input, done once at the boundary;
+* ``derivatives``: noise-adaptive differentiation and the derivative noise level;
+* ``library``: pysindy feature libraries, evaluated and named, as sympy expressions;
+* ``shapes``: coefficient shapes over time (re-exported by ``latentsindy.systems``);
+* ``symbolic``: a closed system's sympy right-hand side as a numpy/torch callable;
+* ``simulate``: integration with a finite step budget, blow-ups reported;
+* ``figures``: matplotlib on demand and saving figures;
+* ``saving``: the hook through which result types are written by ``latentsindy._files``.
+"""

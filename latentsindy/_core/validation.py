@@ -1,0 +1,171 @@
+"""Checks on user input, done once at the boundary, with messages that say the fix."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+MIN_TIMES = 16  # shorter series cannot support a derivative estimate plus a time-varying fit
+
+
+def _as_2d(x, what: str) -> np.ndarray:
+    try:
+        arr = np.asarray(x, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise TypeError(
+            f"{what} must be a numeric array of shape (n_times, n_states); "
+            f"got {type(x).__name__} that cannot be converted ({err})."
+        ) from None
+    if arr.ndim == 1:
+        arr = arr[:, None]
+    if arr.ndim != 2:
+        raise ValueError(
+            f"{what} must have shape (n_times, n_states); got shape {arr.shape}. "
+            "Pass several trajectories as a list of 2-D arrays, not a stacked 3-D array."
+        )
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.sum(~np.isfinite(arr)))
+        raise ValueError(
+            f"{what} contains {bad} NaN or infinite value(s) (first at row "
+            f"{int(np.argwhere(~np.isfinite(arr))[0, 0])}); remove or interpolate them first."
+        )
+    return arr
+
+
+def _ragged(rows) -> bool:
+    return len({np.shape(r) for r in rows}) > 1
+
+
+def as_trajectories(x, what: str = "x") -> list[np.ndarray]:
+    """Return a list of finite 2-D float arrays with a common number of states."""
+    if isinstance(x, list | tuple) and len(x) > 0 and np.ndim(x[0]) <= 1:
+        x = np.asarray(x, dtype=object if _ragged(x) else None)  # rows or numbers: one series
+    if isinstance(x, list | tuple):
+        if len(x) == 0:
+            raise ValueError(f"{what} is an empty list; pass at least one trajectory.")
+        trajs = [_as_2d(xi, f"{what}[{k}]") for k, xi in enumerate(x)]
+    else:
+        trajs = [_as_2d(x, what)]
+    n_states = {tr.shape[1] for tr in trajs}
+    if len(n_states) > 1:
+        raise ValueError(
+            f"All trajectories in {what} must have the same number of states; "
+            f"got {sorted(n_states)}."
+        )
+    for k, tr in enumerate(trajs):
+        if tr.shape[0] < MIN_TIMES:
+            raise ValueError(
+                f"Series too short: trajectory {k} of {what} has {tr.shape[0]} time points; "
+                f"at least {MIN_TIMES} are needed (hundreds are better)."
+            )
+    return trajs
+
+
+def as_times(t, trajectories: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """Turn a spacing, an array of times, or a list of either into one time array per trajectory."""
+    n = len(trajectories)
+    if isinstance(t, list | tuple) and n > 1:
+        if len(t) != n:
+            raise ValueError(f"t is a list of {len(t)} entries but x has {n} trajectories.")
+        return [_one_times(ti, tr.shape[0], f"t[{k}]") for k, (ti, tr) in
+                enumerate(zip(t, trajectories, strict=True))]
+    if isinstance(t, list | tuple) and len(t) == 1 and np.ndim(t[0]) >= 1:
+        t = t[0]
+    return [_one_times(t, tr.shape[0], "t") for tr in trajectories]
+
+
+def _one_times(t, n_times: int, what: str) -> np.ndarray:
+    if t is None:
+        raise TypeError(f"{what} is required: a sample spacing (float) or an array of times.")
+    if np.ndim(t) == 0:
+        dt = float(t)
+        if not np.isfinite(dt) or dt <= 0:
+            raise ValueError(f"The sample spacing {what} must be a positive number; got {t!r}.")
+        return np.arange(n_times) * dt
+    arr = np.array(t, dtype=float, copy=True)
+    if arr.ndim != 1:
+        raise ValueError(f"{what} must be 1-D; got shape {arr.shape}.")
+    if arr.shape[0] != n_times:
+        raise ValueError(
+            f"Length mismatch: {what} has {arr.shape[0]} times but x has {n_times} rows; "
+            "they must match."
+        )
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{what} contains NaN or infinite times.")
+    steps = np.diff(arr)
+    if np.any(steps <= 0):
+        k = int(np.argmax(steps <= 0))
+        raise ValueError(
+            f"{what} must be strictly increasing; t[{k}]={arr[k]!r} is followed by "
+            f"t[{k + 1}]={arr[k + 1]!r}. Sort the samples or drop duplicates."
+        )
+    return arr
+
+
+def check_feature_names(names, n_states: int, what: str = "feature_names") -> list[str]:
+    """State names: default ``x0, x1, ...``; must be unique identifiers."""
+    if names is None:
+        return [f"x{i}" for i in range(n_states)]
+    names = [str(n) for n in names]
+    if len(names) != n_states:
+        raise ValueError(f"{what} has {len(names)} names but the data have {n_states} states.")
+    if len(set(names)) != len(names):
+        raise ValueError(f"{what} must be unique; got {names}.")
+    for n in names:
+        if not n.isidentifier():
+            raise ValueError(
+                f"{what} must be valid identifiers (letters, digits, underscores); got {n!r}."
+            )
+    return names
+
+
+def check_positive(value, what: str, *, allow_zero: bool = False, integer: bool = False):
+    kind = int if integer else float
+    try:
+        v = kind(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{what} must be a number; got {value!r}.") from None
+    if integer and v != value:
+        raise TypeError(f"{what} must be an integer; got {value!r}.")
+    if not np.isfinite(v) or (v < 0 if allow_zero else v <= 0):
+        bound = ">= 0" if allow_zero else "> 0"
+        raise ValueError(f"{what} must be {bound}; got {value!r}.")
+    return v
+
+
+def term_mask(spec, states, features, what, *, default, unnamed):
+    """Bool (n_states, n_features) mask from None (``default``), a dict naming the terms
+    of some states (states not named get ``unnamed``) or a bool array."""
+    shape = (len(states), len(features))
+    if spec is None:
+        return np.full(shape, default)
+    if isinstance(spec, dict):
+        mask = np.full(shape, unnamed)
+        for state, feats in spec.items():
+            if state not in states:
+                raise ValueError(f"{what} names state {state!r}; states are {list(states)}.")
+            if isinstance(feats, str):
+                feats = [feats]
+            mask[states.index(state)] = False
+            for f in feats:
+                if f not in features:
+                    raise ValueError(f"{what}[{state!r}] names feature {f!r}; library features "
+                                     f"are {list(features)}.")
+                mask[states.index(state), features.index(f)] = True
+        return mask
+    arr = np.asarray(spec)
+    if arr.shape != shape or arr.dtype != bool:
+        raise ValueError(f"{what} must be a dict {{state: [features]}} or a bool array of "
+                         f"shape {shape}; got {type(spec).__name__} with shape "
+                         f"{getattr(arr, 'shape', None)} and dtype {arr.dtype}.")
+    return arr.copy()
+
+
+def free_rows(spec, states):
+    """Equations whose support is learned (not fixed by the user)."""
+    if spec is None:
+        return np.ones(len(states), dtype=bool)
+    if isinstance(spec, dict):
+        return np.array([s not in spec for s in states])
+    return np.zeros(len(states), dtype=bool)

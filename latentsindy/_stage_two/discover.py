@@ -1,0 +1,249 @@
+"""Stage two: time-varying coefficients become hidden states of a closed system.
+
+The pipeline: stage one (:class:`DynamicSINDy`) fits time-varying coefficients; its
+varying terms, and alternatives to them, are proposed as structures
+(:mod:`.hypotheses`); each is closed, refined by integration against the
+observed data and scored on held-out segments (:mod:`.judge`); the best
+small system wins and the others stay on the result (:mod:`.assemble`).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import numpy as np
+import pysindy as ps
+
+from .._core import validation as val
+from .._core.derivatives import AdaptiveSavitzkyGolay, noise_level
+from .._core.library import check_library, feature_expressions, fit_library
+from .._stage_one.estimator import DynamicSINDy
+from .assemble import from_proposals, from_verdicts
+from .hypotheses import Context, evaluate, propose
+from .judge import judge_all
+from .refine import NOISE_FLOOR, RefineOptions, single_thread
+from .result import HiddenDiscovery
+from .smoother import Structure
+
+VARIATION_SIGMAS = 3.0  # variation must exceed this many posterior std ...
+VARIATION_RELATIVE = 0.05  # ... and this fraction of the coefficient's mean size
+THRESHOLD = 0.05  # smallest share of an equation's RMS rate a constant term may explain
+
+
+def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_terms=None,
+                    hidden_names=None, closure_library=None, generator="timevae",
+                    generator_options=None, training=None, differentiation_method=None,
+                    support=None, n_samples=64, refine=True, seed=0,
+                    verbose=True) -> HiddenDiscovery:
+    """Infer hidden variables and a closed, autonomous ODE from partial observations.
+
+    Stage one fits time-varying coefficients Xi(t) (:class:`DynamicSINDy`); a
+    coefficient that varies in time is a hidden state h in physical units (prey-only
+    Lotka-Volterra: ``xdot = x h`` with ``h = alpha - beta y``). Because any state
+    dependence can hide in a varying coefficient, discovery is a choice among
+    structures: stage one's own, each library term as the carrier of the variation,
+    varying coefficients that are affine images of one another as one hidden state,
+    and (when no first-order law reproduces the data) a hidden state's rate as a
+    second hidden state. Each structure's hidden series is estimated, closed by sparse
+    regression, refined by integrating the closed system against the observed data
+    (multiple shooting, torchdiffeq), its terms selected stepwise on that fit, and
+    scored on held-out segments; the sparsest system within one standard error of the
+    best score wins. Structures with other hidden states that score as well are
+    reported as ``uncertain``, failed checks as ``doubts``; read ``confident``.
+
+    Examples
+    --------
+    >>> import pysindy as ps
+    >>> from latentsindy import discover_hidden, systems
+    >>> data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=1000)
+    >>> result = discover_hidden(data.x[:, :1], ps.PolynomialLibrary(degree=3),
+    ...                          t=data.t, feature_names=["x"], verbose=False)
+    >>> result.hidden_names, result.confident
+    (('h0',), True)
+
+    Parameters
+    ----------
+    x_observed : array (n_times, n_observed) or list of such arrays
+    library : pysindy feature library, optional
+        Candidate functions for the observed equations (default polynomials of degree 2).
+    t : float, array or list of arrays
+        Sample spacing or times.
+    feature_names : list of str, optional
+        Names of the observed states (default ``x0, x1, ...``).
+    hidden_terms : list of (state, feature), optional
+        Fix the hidden states: each named coefficient is one hidden state (no search
+        over carriers or shared variation; its rate may still be added as a second
+        state, and terms are still selected).
+    hidden_names : list of str, optional
+        Names for the hidden states found, in order (default ``h0, h1, ...``; the rate
+        of a hidden state ``h`` is ``h_rate``).
+    closure_library : pysindy feature library, optional
+        Candidates for the hidden equations (default polynomials of degree 2).
+    generator, generator_options, training, differentiation_method, support
+        Passed to :class:`DynamicSINDy`.
+    n_samples : int
+        Posterior samples of stage one's uncertainty band.
+    refine : bool
+        Refine every candidate system by integration and judge on held-out data
+        (default). Off: candidates are ranked by their closure's held-out error and
+        the coefficients come from the closure's integral fit.
+    seed : int
+    verbose : bool
+
+    Returns
+    -------
+    HiddenDiscovery
+    """
+    trajs = val.as_trajectories(x_observed, "x_observed")
+    times = val.as_times(t, trajs)
+    names = val.check_feature_names(feature_names, trajs[0].shape[1])
+    closure_library = (ps.PolynomialLibrary(degree=2) if closure_library is None
+                       else closure_library)
+    if not isinstance(closure_library, ps.feature_library.base.BaseFeatureLibrary):
+        raise TypeError("closure_library must be a pysindy feature library; got "
+                        f"{type(closure_library).__name__}.")
+    val.check_positive(n_samples, "n_samples", integer=True)
+    if not isinstance(refine, bool):
+        raise TypeError(f"refine must be True or False; got {refine!r}.")
+    _, features = fit_library(check_library(library), trajs[:1], names)
+    _check_hidden_request(hidden_terms, hidden_names, names, features)
+
+    # Stage one, one model per trajectory: hidden states differ between trajectories.
+    # Later trajectories reuse the first one's support so the equations are shared.
+    fits, coefs = [], []
+    for k, (x, tk) in enumerate(zip(trajs, times, strict=True)):
+        model = DynamicSINDy(library, generator=generator, generator_options=generator_options,
+                             training=training, differentiation_method=differentiation_method,
+                             support=support if k == 0 else fits[0].support_,
+                             device="cpu", verbose=verbose, seed=seed)
+        fits.append(model.fit(x, tk, feature_names=names))
+        coefs.append(model.coefficients(n_samples=n_samples))
+    first = coefs[0]
+    pairs = _varying(coefs, hidden_terms)
+    if not pairs:
+        raise ValueError(
+            "No coefficient varies in time beyond its uncertainty, so there is no hidden "
+            f"variable to discover (active terms: {first.active_terms()}). If one should vary, "
+            "name it with hidden_terms=[(state, feature)].")
+
+    ctx = _context(fits, trajs, times, names, first, closure_library, support)
+    index = [(names.index(s), first.feature_names.index(f)) for s, f in pairs]
+    series = np.stack([first.term(s, f) for s, f in pairs], axis=1)
+    if hidden_terms is None:
+        proposals = propose(ctx, first.support, index, series)
+    else:
+        proposals = [evaluate(_named_structure(first.support, index), ctx, "hidden_terms")]
+    if refine:
+        with single_thread():
+            ordered, uncertain = judge_all(proposals, ctx, RefineOptions())
+            result = from_verdicts(ordered, uncertain, ctx, first, hidden_names)
+    else:
+        stds = {ij: first.std[:, ij[0], ij[1]] for ij in index}
+        result = from_proposals(proposals, ctx, first, hidden_names, stds)
+    if hidden_names is not None and len(hidden_names) != len(result.hidden_names):
+        note = (f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "
+                f"hidden state(s) found; names used: {list(result.hidden_names)}")
+        result = dataclasses.replace(result, notes=result.notes + (note,))
+    return result
+
+
+def _context(fits, trajs, times, names, first, closure_library, support):
+    smoothed, spans = [], []
+    for m, x, tk in zip(fits, trajs, times, strict=True):
+        sm, span = _smoothed(m, x, tk)
+        smoothed.append(sm)
+        spans.append(span)
+    library = fits[0].library_
+    thetas = [np.asarray(a, dtype=float) for a in library.transform(smoothed)]
+    stds = np.std(np.vstack(trajs), axis=0)
+    sigma = np.maximum(np.mean([noise_level(x) for x in trajs], axis=0),
+                       NOISE_FLOOR * np.where(stds > 0, stds, 1.0))
+    span = int(max(spans))
+    return Context(tuple(names), tuple(first.feature_names),
+                   tuple(feature_expressions(library, first.feature_names, names)),
+                   [np.asarray(tk, float) for tk in times], [np.asarray(x) for x in trajs],
+                   smoothed, thetas, sigma, _knot_spacing(span, trajs), span,
+                   val.free_rows(support, names), THRESHOLD, closure_library)
+
+
+def _knot_spacing(span, trajs, max_knots=400):
+    """Knots of the hidden series every half differentiator window (the finest scale
+    the data resolve), but at most ``max_knots`` per series (a hidden state of an ODE
+    does not need more, and the smoother's cost grows with them)."""
+    longest = max(len(x) for x in trajs)
+    return int(max(1, span // 2, -(-longest // max_knots)))
+
+
+def _named_structure(support, index):
+    """One hidden state per named coefficient."""
+    sup = np.array(support, dtype=bool, copy=True)
+    loads = np.zeros((*sup.shape, len(index)))
+    for a, (i, k) in enumerate(index):
+        sup[i, k] = True
+        loads[i, k, a] = 1.0
+    return Structure(sup, loads, tuple(index))
+
+
+def _smoothed(model, x, t):
+    """The observed states as the stage-one differentiator smoothed them (less noise in
+    the closure library), or the raw data when the method keeps no smoothed copy; and
+    the differentiator's resolution in samples (its widest smoothing window, or 1)."""
+    method = copy.deepcopy(model.differentiation_method) or AdaptiveSavitzkyGolay()
+    method(x, t)
+    smooth = getattr(method, "smoothed_x_", None)
+    span = int(max(getattr(method, "windows_", None) or [1]))
+    if smooth is None or np.shape(smooth) != x.shape:
+        return x, span
+    return np.asarray(smooth), span
+
+
+def _check_hidden_request(hidden_terms, hidden_names, states, features):
+    """Validate hidden_terms / hidden_names before any training."""
+    if hidden_terms is not None:
+        pairs = []
+        for p in hidden_terms:
+            if (not isinstance(p, list | tuple) or len(p) != 2 or p[0] not in states
+                    or p[1] not in features):
+                raise ValueError(
+                    f"hidden_terms entries must be (state, feature) pairs with state in "
+                    f"{list(states)} and feature in {list(features)}; got {p!r}.")
+            pairs.append(tuple(p))
+        if len(set(pairs)) != len(pairs):
+            raise ValueError(f"hidden_terms has duplicates: {pairs}.")
+        if hidden_names is not None and len(hidden_names) != len(pairs):
+            raise ValueError(f"hidden_names has {len(hidden_names)} name(s) but "
+                             f"{len(pairs)} hidden state(s) were requested in hidden_terms.")
+    if hidden_names is not None:
+        names = val.check_feature_names(hidden_names, len(hidden_names), "hidden_names")
+        clash = set(names) & set(states)
+        if clash:
+            raise ValueError(f"hidden_names {sorted(clash)} clash with the observed state names.")
+
+
+def _varying(coefs, hidden_terms):
+    """Stage one's varying coefficients (or the named ones), most significant first:
+    variation over time relative to the posterior spread, the weakest trajectory's."""
+    first = coefs[0]
+    if hidden_terms is not None:
+        pairs = [tuple(p) for p in hidden_terms]
+        active = set(first.active_terms())
+        for p in pairs:
+            if p not in active:
+                raise ValueError(f"hidden term {p!r} was removed by the sparsity stage "
+                                 f"(active terms: {sorted(active)}); fix it with support=.")
+        return pairs
+    found = []
+    for s, f in first.active_terms():
+        if all(_varies(c.term(s, f), c.term_std(s, f)) for c in coefs):
+            sig = min(float(np.std(c.term(s, f))) / max(float(np.mean(c.term_std(s, f))),
+                                                        1e-300) for c in coefs)
+            found.append((sig, (s, f)))
+    found.sort(key=lambda item: -item[0])
+    return [p for _, p in found]
+
+
+def _varies(mean, std):
+    variation = float(np.std(mean))
+    return (variation > VARIATION_SIGMAS * float(np.mean(std))
+            and variation > VARIATION_RELATIVE * float(np.mean(np.abs(mean))))

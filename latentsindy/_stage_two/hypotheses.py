@@ -1,0 +1,242 @@
+"""Structures that could explain the data: proposals from stage one and alternatives.
+
+Any state dependence can hide in a time-varying coefficient, so several structures
+(which terms an observed equation has, which of them vary, and whether varying
+coefficients share one hidden state) explain the derivatives about equally well. They
+differ in what matters: whether the hidden series they imply close into a short
+autonomous equation. Each proposal here gets its hidden series from the structured
+smoother (:mod:`.smoother`) and a cheap closure (:mod:`.closure`);
+its held-out closure error ranks it. The best few go on to the closed-loop judge
+(:mod:`.judge`), which decides by integration.
+
+Sources of proposals:
+
+* stage one's varying coefficients, with the variation shared among them at each rank
+  (coefficient series that are affine images of one another are one hidden state);
+* for every equation whose coefficients vary, each library term as the one carrier of
+  the variation (stage one may make the wrong term vary, or prune a real constant term
+  whose role the variation took over); constant terms are then added or dropped one at
+  a time while that improves the closure.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .._core.derivatives import AdaptiveSavitzkyGolay
+from .closure import ClosureFit, fit_closure, fit_rate_closure
+from .smoother import HiddenFit, Structure, fit_hidden, single_term
+
+MAX_RANK = 3  # at most this many hidden states from shared variation
+KEEP = 3  # proposals passed on to the judge besides the ones always judged
+IMPROVE = 0.8  # a constant-term move must cut the closure error by 20%
+
+
+@dataclass(frozen=True)
+class Context:
+    """Everything stage two needs about the data (all trajectories)."""
+
+    observed_names: tuple
+    feature_names: tuple
+    feature_exprs: tuple  # sympy expression of each library feature
+    times: list
+    observed: list
+    smoothed: list
+    thetas: list  # library on the smoothed states
+    sigma: np.ndarray  # measurement noise std per observed state
+    spacing: int  # knot spacing of hidden series, samples
+    span: int  # differentiator window, samples
+    free_rows: np.ndarray  # equations whose terms are learned
+    threshold: float
+    closure_library: object
+
+
+@dataclass(frozen=True)
+class Proposal:
+    """A structure, the hidden series it implies and their closure."""
+
+    structure: Structure
+    fit: HiddenFit
+    closure: ClosureFit
+    hidden: list  # (T, n_hidden + order - 1) per trajectory: hidden states (and rate)
+    order: int
+    origin: str
+
+    @property
+    def score(self) -> float:
+        return self.closure.cv_error
+
+
+def evaluate(structure, ctx: Context, origin: str, order: int = 1) -> Proposal:
+    """Hidden series of ``structure`` and their closure."""
+    fit = fit_hidden(structure, ctx.thetas, ctx.observed, ctx.times, ctx.sigma, ctx.spacing)
+    return close(structure, fit, ctx, origin, order)
+
+
+def close(structure, fit, ctx, origin, order=1):
+    """Closure of a fitted structure; ``order=2`` adds the rate of the (single) hidden
+    state as a second hidden state and closes the rate."""
+    hidden = [h for h in fit.hidden]
+    names = [f"h{a}" for a in range(structure.n_hidden)]
+    if order == 2:
+        rates = [_derivative(h, t) for h, t in zip(hidden, ctx.times, strict=True)]
+        states = [np.hstack([h, r]) for h, r in zip(hidden, rates, strict=True)]
+        closure = fit_rate_closure(hidden, rates, ctx.smoothed, ctx.times, ctx.closure_library,
+                                   ["g0"] + names + list(ctx.observed_names), ctx.span)
+        return Proposal(structure, fit, closure, states, 2, origin)
+    targets = [_derivative(h, t) for h, t in zip(hidden, ctx.times, strict=True)]
+    closure = fit_closure(hidden, targets, ctx.smoothed, ctx.times, ctx.closure_library,
+                          names, list(ctx.observed_names), ctx.span)
+    return Proposal(structure, fit, closure, hidden, 1, origin)
+
+
+def _derivative(series, t):
+    return AdaptiveSavitzkyGolay()(np.asarray(series, float), t)
+
+
+def propose(ctx: Context, support, varying_pairs, series):
+    """Ranked proposals (best first) for the judge.
+
+    Parameters
+    ----------
+    support : bool (n_observed, n_features), stage one's terms
+    varying_pairs : list of (equation, feature) indices, stage one's varying terms,
+        most significant first
+    series : (T, len(varying_pairs)) their posterior-mean series (first trajectory)
+    """
+    n_obs, n_feat = support.shape
+    proposals = {}
+
+    def add(p):
+        key = (p.structure.key(), p.order)
+        if key not in proposals or p.score < proposals[key].score:
+            proposals[key] = p
+
+    first = []  # always judged: stage one's own structure, and per equation the carrier
+    # whose series fits the data best and the one whose series closes best
+    for structure in _shared(support, varying_pairs, series):
+        p = evaluate(structure, ctx, "stage one")
+        first.append(p) if not first else None
+        add(p)
+        add(improve_constants(p, ctx))
+    equations = sorted({i for i, _ in varying_pairs})
+    best_carrier = {}
+    for i in equations:
+        if not ctx.free_rows[i]:
+            continue
+        # the other equations keep stage one's terms as constants
+        trials = _usable([evaluate(single_term(n_obs, n_feat, i, k, support), ctx, "carrier")
+                          for k in range(n_feat)])
+        fitting = min(trials, key=lambda p: p.fit.misfit)
+        for p in [trials[0], fitting] + trials[1:2]:
+            add(p)
+            add(improve_constants(p, ctx))
+        first += [trials[0], fitting]
+        best_carrier[i] = trials[0]
+    if len(best_carrier) > 1:  # variation in several equations: one hidden or several
+        for structure in _across_equations(best_carrier, support):
+            p = evaluate(structure, ctx, "shared")
+            add(p)
+            add(improve_constants(p, ctx))
+    chosen = []
+    for p in first + _usable(list(proposals.values())):
+        if all(p.structure.key() != q.structure.key() or p.order != q.order for q in chosen):
+            chosen.append(p)
+        if len(chosen) >= len(first) + KEEP:
+            break
+    return chosen
+
+
+def _usable(proposals):
+    """Best closure first, among proposals whose structure fits the data (misfit within
+    twice the best one's)."""
+    if not proposals:
+        return []
+    floor = min(p.fit.misfit for p in proposals)
+    ok = [p for p in proposals if p.fit.misfit <= 2.0 * max(floor, 1.0)]
+    return sorted(ok, key=lambda p: (p.score, p.structure.n_hidden))
+
+
+def improve_constants(p: Proposal, ctx: Context, max_moves: int = 3) -> Proposal:
+    """Add or drop one constant term at a time in the equations with hidden states while
+    that cuts the closure error by at least 20%."""
+    rows = sorted({i for i, _ in p.structure.pivots} | {
+        int(i) for i in np.flatnonzero(p.structure.varying.any(axis=1))})
+    rows = [i for i in rows if ctx.free_rows[i]]
+    for _ in range(max_moves):
+        best = None
+        for i in rows:
+            for j in range(p.structure.support.shape[1]):
+                if (i, j) in p.structure.pivots or p.structure.varying[i, j]:
+                    continue
+                sup = p.structure.support.copy()
+                sup[i, j] = not sup[i, j]
+                trial = evaluate(replace(p.structure, support=sup), ctx,
+                                 p.origin + ", terms moved", p.order)
+                if trial.fit.misfit > 2.0 * max(p.fit.misfit, 1.0):
+                    continue
+                if best is None or trial.score < best.score:
+                    best = trial
+        if best is None or best.score > IMPROVE * p.score:
+            return p
+        p = best
+    return p
+
+
+def _shared(support, pairs, series):
+    """Stage one's varying terms with their variation factored at ranks 1..MAX_RANK:
+    pivots chosen greedily (the most significant term, then the one least explained by
+    the pivots so far), other terms' loadings by least squares on the pivots."""
+    if not pairs:
+        return []
+    n_obs, n_feat = support.shape
+    z = np.asarray(series, float)
+    z = (z - z.mean(axis=0)) / np.maximum(z.std(axis=0), 1e-300)
+    out = []
+    pivots = [0]
+    for rank in range(1, min(len(pairs), MAX_RANK) + 1):
+        if rank > 1:
+            basis = np.column_stack([np.ones(len(z)), z[:, pivots]])
+            resid = z - basis @ np.linalg.lstsq(basis, z, rcond=None)[0]
+            left = np.sum(resid**2, axis=0)
+            left[pivots] = -1
+            pivots.append(int(np.argmax(left)))
+        loads = np.zeros((n_obs, n_feat, rank))
+        raw = np.asarray(series, float)
+        basis = np.column_stack([np.ones(len(raw)), raw[:, pivots]])
+        fit = np.linalg.lstsq(basis, raw, rcond=None)[0][1:]  # (rank, n_terms)
+        for col, (i, k) in enumerate(pairs):
+            loads[i, k] = fit[:, col]
+        for a, col in enumerate(pivots):
+            i, k = pairs[col]
+            loads[i, k] = 0.0
+            loads[i, k, a] = 1.0
+        sup = support.copy()
+        for i, k in pairs:
+            sup[i, k] = True
+        out.append(Structure(sup, loads, tuple(pairs[c] for c in pivots)))
+    return out
+
+
+def _across_equations(best, support):
+    """One hidden state shared by the best carrier of every varying equation (loadings
+    from the affine relation of their series), and one hidden state per equation."""
+    items = sorted(best.items(), key=lambda kv: kv[1].score)
+    n_obs, n_feat = support.shape
+    sup = support.copy()
+    for _, p in items:
+        sup |= p.structure.support
+    h0 = np.concatenate([h[:, 0] for h in items[0][1].fit.hidden])
+    shared = np.zeros((n_obs, n_feat, 1))
+    separate = np.zeros((n_obs, n_feat, len(items)))
+    pivots = []
+    for a, (_, p) in enumerate(items):
+        (pi, pk), = p.structure.pivots
+        hs = np.concatenate([h[:, 0] for h in p.fit.hidden])
+        slope = np.polyfit(h0, hs, 1)[0] if a else 1.0
+        shared[pi, pk, 0] = slope
+        separate[pi, pk, a] = 1.0
+        pivots.append((pi, pk))
+    return [Structure(sup, shared, (pivots[0],)), Structure(sup, separate, tuple(pivots))]

@@ -1,0 +1,243 @@
+"""The judge: every proposal is closed, refined by integration and scored on held-out data.
+
+For a proposal (:mod:`.hypotheses`) the closed system is assembled from
+structure (observed terms, hidden states' loadings, the closure's terms), then refined
+by multiple shooting (:mod:`.refine`) and its terms selected on the
+integrated likelihood (:mod:`.terms`: drops, additions, swaps, merges and exchanges
+scored by BIC). Last, interleaved held-out segments give its score. Among all scored proposals
+the sparsest one whose score is within one standard error of the best wins; others in
+that band with other hidden states (whatever their size) make the result uncertain,
+and the summary says so.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import sympy as sp
+
+from .._core.library import feature_expressions
+from .field import ParametricSystem
+from .hypotheses import Context, Proposal, close
+from .refine import Fit, Problem, RefineOptions, cross_validate
+from .shooting import BlowUp
+from .terms import ambiguities, select_terms
+
+RATE_TRIGGER = 1.5  # best misfit (noise variances) above which rate states are tried
+# Held-out scores below this (noise variances) all count as perfect: on noise-free data
+# the noise level is floored (0.1% of each state's std), scores are tiny and their
+# differences are the integrator's, not the data's; the smallest such system wins.
+TIE = 0.05
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """A refined, scored proposal."""
+
+    proposal: Proposal
+    fit: Fit
+    problem: Problem
+    cv: float
+    cv_se: float
+    history: tuple
+    initial_misfit: float
+    candidates: np.ndarray | None = None
+
+    @property
+    def system(self) -> ParametricSystem:
+        return self.fit.system
+
+    @property
+    def scored(self) -> bool:
+        """Scored on held-out data (not rejected early, did not blow up)."""
+        return not (self.history and isinstance(self.history[0], str))
+
+    @property
+    def size(self) -> int:
+        """Free coefficients plus hidden initial values."""
+        return self.system.n_free + (len(self.system.state_names) - self.system.n_observed)
+
+
+def build(p: Proposal, ctx: Context):
+    """The closed system of a proposal, the terms stepwise selection may add, and the
+    initial guesses of the states."""
+    st = p.structure
+    obs = list(ctx.observed_names)
+    hidden = [f"h{a}" for a in range(st.n_hidden)] + (["g0"] if p.order == 2 else [])
+    names = obs + hidden
+    sym = {n: sp.Symbol(n, real=True) for n in names}
+    features, index = [], {}
+
+    def col(expr):
+        expr = sp.expand(expr)
+        if expr not in index:
+            index[expr] = len(features)
+            features.append(expr)
+        return index[expr]
+
+    obs_cols = [col(e) for e in ctx.feature_exprs]
+    closure_states = (["g0"] if p.order == 2 else []) + hidden[:st.n_hidden] + obs
+    closure_cols = [col(e) for e in feature_expressions(
+        p.closure.library, list(p.closure.feature_names), closure_states)]
+    loads = [(i, col(sym[hidden[a]] * ctx.feature_exprs[k]), a, k)
+             for i in range(len(obs)) for k in range(st.support.shape[1])
+             for a in range(st.n_hidden) if st.loadings[i, k, a] != 0]
+    rate = col(sym["g0"]) if p.order == 2 else None
+    n = len(names)
+    coef = np.zeros((n, len(features)))
+    free = np.zeros_like(coef, dtype=bool)
+    candidates = np.zeros_like(free)
+    for i in range(len(obs)):
+        for k in range(st.support.shape[1]):
+            if st.support[i, k] and (i, k) not in st.pivots:
+                coef[i, obs_cols[k]] = p.fit.constants[i, k]
+                free[i, obs_cols[k]] = True
+            elif ctx.free_rows[i] and not st.support[i, k]:
+                candidates[i, obs_cols[k]] = True
+    for i, c, a, k in loads:
+        coef[i, c] = st.loadings[i, k, a]
+        free[i, c] = (i, k) != st.pivots[a]
+    closed = [n - 1] if p.order == 2 else list(range(len(obs), n))
+    if rate is not None:
+        coef[len(obs), rate] = 1.0  # h0' = g0: the rate state is defined as such
+    for r, row in zip(closed, p.closure.coef, strict=True):
+        for value, c in zip(row, closure_cols, strict=True):
+            if value != 0:
+                coef[r, c] = value
+                free[r, c] = True
+            else:
+                candidates[r, c] = True
+    system = ParametricSystem(tuple(names), len(obs), tuple(features), coef, free)
+    guesses = [np.hstack([x, h]) for x, h in zip(ctx.smoothed, p.hidden, strict=True)]
+    return system, candidates & ~free, guesses
+
+
+@dataclass
+class _Trial:
+    proposal: Proposal
+    problem: Problem
+    fit: Fit
+    candidates: np.ndarray
+    initial_misfit: float
+
+
+def _first_fit(p: Proposal, ctx: Context, options) -> _Trial | None:
+    system, candidates, guesses = build(p, ctx)
+    problem = Problem(system, ctx.times, ctx.observed, guesses, options)
+    try:
+        initial = problem.equations(system, problem.initial_starts,
+                                    np.ones(problem.n_segments), 1.0, jacobian=False)
+        fit = problem.fit(system)
+    except BlowUp:
+        return None  # the proposal's system cannot even be integrated from its guesses
+    return _Trial(p, problem, fit, candidates, float(np.sqrt(initial.data_cost /
+                                                             problem.n_data)))
+
+
+def _finish(trial: _Trial) -> Verdict:
+    """Stepwise selection and the held-out score of a refined proposal."""
+    # the pool includes the system's own terms, so a term swapped out can come back
+    pool = trial.candidates | trial.fit.system.free
+    try:
+        fit, history = select_terms(trial.problem, trial.fit, pool)
+        cv, se, _ = cross_validate(trial.problem, fit)
+    except BlowUp:
+        return _unscored(trial, "blew up")
+    return Verdict(trial.proposal, fit, trial.problem, cv, se, tuple(history),
+                   trial.initial_misfit, pool)
+
+
+def _unscored(trial: _Trial, why: str) -> Verdict:
+    """A verdict without a held-out score: ``cv`` holds the in-sample misfit (for
+    display only; ``rank`` never compares it with held-out scores)."""
+    return Verdict(trial.proposal, trial.fit, trial.problem, trial.fit.residual_variance, 0.0,
+                   (why,), trial.initial_misfit)
+
+
+def judge_all(proposals, ctx: Context, options: RefineOptions | None = None):
+    """Judge the proposals: refine each; when none reproduces the data to about its
+    noise level, also refine the best single-hidden-state proposals with the hidden
+    state's rate as a second state; then select terms stepwise and score on held-out
+    data those whose in-sample misfit is within twice the best one's (the others
+    cannot come close on held-out data). Returns ``rank``'s result."""
+    options = options or RefineOptions()
+    trials = [t for t in (_first_fit(p, ctx, options) for p in proposals) if t is not None]
+    best = min((t.fit.residual_variance for t in trials), default=np.inf)
+    if best > RATE_TRIGGER:
+        singles = [p for p in proposals if p.structure.n_hidden == 1 and p.order == 1]
+        for p in singles[:2]:
+            t = _first_fit(close(p.structure, p.fit, ctx, p.origin + ", with its rate", 2),
+                           ctx, options)
+            if t is not None:
+                trials.append(t)
+        best = min((t.fit.residual_variance for t in trials), default=np.inf)
+    verdicts = []
+    for t in trials:
+        if t.fit.residual_variance <= 2.0 * max(best, 1.0):
+            verdicts.append(_finish(t))
+        else:
+            verdicts.append(_unscored(t, "rejected"))
+    return rank(verdicts)
+
+
+def exchangeable_terms(verdict: Verdict):
+    """Terms of the chosen system that others could replace as well
+    (:func:`.terms.ambiguities`): [(move, misfit change)]."""
+    if not verdict.scored or verdict.candidates is None:
+        return []
+    try:
+        return ambiguities(verdict.problem, verdict.fit, verdict.candidates)
+    except BlowUp:
+        return []
+
+
+def rank(verdicts):
+    """Verdicts ordered by choice: among the scored ones, the sparsest within one
+    standard error of the best score first; returns (ordered, uncertain) where
+    ``uncertain`` lists the others in that band whose hidden states are not a superset
+    of the chosen one's (other carriers): structures the data cannot tell apart.
+    Systems in the band that only add terms or hidden states to the chosen one are
+    parsimony's call. With no scored verdict, the smallest comes first."""
+    unique = []
+    for v in sorted(verdicts, key=lambda v: (not v.scored, v.cv)):
+        if not any(same_structure(v, u) for u in unique):
+            unique.append(v)  # the same final system reached twice counts once
+    verdicts = unique
+    finite = [v for v in verdicts if v.scored and np.isfinite(v.cv)]
+    if not finite:
+        return sorted(verdicts, key=lambda v: v.size), []
+    best = min(finite, key=lambda v: v.cv)
+    band = max(best.cv + best.cv_se, TIE)
+    inside = [v for v in finite if v.cv <= band]
+    # equal sizes: fewer terms in the observed equations first. A hidden state can be
+    # shifted by any function of the observed states that the library holds (prey-only
+    # LV: h + d x with xdot = x h + d x^2 is the same system, same size); the variable
+    # that needs the fewest observed terms is the one that carries the dynamics.
+    chosen = min(inside, key=lambda v: (v.size, _observed_terms(v), v.cv))
+    ids = {id(v) for v in inside}
+    rest = sorted([v for v in verdicts if v is not chosen],
+                  key=lambda v: (not v.scored, id(v) not in ids,
+                                 v.size if id(v) in ids else 0, v.cv))
+    uncertain = [v for v in rest if id(v) in ids and not _extends(v, chosen)]
+    return [chosen] + rest, uncertain
+
+
+def _observed_terms(v):
+    system = v.system
+    rows = slice(0, getattr(system, "n_observed", 0))
+    return int(((system.coef[rows] != 0) | system.free[rows]).sum())
+
+
+def _extends(v, chosen):
+    """Whether ``v``'s hidden states include all of ``chosen``'s (same defining terms,
+    at least the same order): then ``v`` is the chosen system with more in it, and
+    parsimony, not uncertainty, decides between them."""
+    a, b = v.proposal, chosen.proposal
+    return set(b.structure.pivots) <= set(a.structure.pivots) and a.order >= b.order
+
+
+def same_structure(a: Verdict, b: Verdict) -> bool:
+    sa, sb = a.system, b.system
+    return (sa.state_names == sb.state_names and sa.features == sb.features
+            and np.array_equal(sa.free | (sa.coef != 0), sb.free | (sb.coef != 0)))

@@ -1,0 +1,366 @@
+"""`HiddenDiscovery`: the closed system found by `discover_hidden`, and its checks."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import sympy as sp
+
+from .._core import saving
+from .._core.simulate import Simulation, integrate
+from .._core.symbolic import VectorField
+from .._stage_one.coefficients import CoefficientSeries
+from .figures import plot_discovery
+
+
+@dataclass(frozen=True)
+class HiddenState:
+    """What a hidden state is, in terms of the observed equations.
+
+    Attributes
+    ----------
+    name : str
+    terms : tuple of (equation, feature)
+        The observed-equation terms whose coefficients move with this state. The
+        state *is* the coefficient of the first one; the others read ``c + w * name``
+        in the equations (one hidden variable seen through several terms).
+    rate_of : str or None
+        Set when the state is the time derivative of another hidden state (a hidden
+        state that no coefficient shows, found because the first one's law needs it).
+    """
+
+    name: str
+    terms: tuple = ()
+    rate_of: str | None = None
+
+    def describe(self) -> str:
+        if self.rate_of is not None:
+            return f"{self.name} = d{self.rate_of}/dt"
+        (state, feature), *rest = self.terms
+        text = f"{self.name} = coefficient of {feature} in d{state}/dt"
+        if rest:
+            text += " (also moves the coefficient" + ("s" if len(rest) > 1 else "") + " of " \
+                + ", ".join(f"{f} in d{s}/dt" for s, f in rest) + ")"
+        return text
+
+
+@dataclass(frozen=True)
+class Term:
+    """One term of the closed system: ``value * feature`` in ``d state/dt``."""
+
+    state: str
+    feature: sp.Expr
+    value: float
+    stderr: float  # nan where not estimated (a definition, or refinement off)
+    fixed: bool  # part of a hidden state's definition (value 1)
+
+
+@dataclass(frozen=True)
+class Alternative:
+    """Another structure the judge considered.
+
+    ``score`` is its held-out score when ``status`` is "scored"; for "rejected" (misfit
+    far above the best) and "blew up" it is the in-sample misfit (noise variances); for
+    "not refined" (``refine=False``) it is NaN.
+    """
+
+    description: str
+    rhs: dict
+    hidden_states: tuple
+    score: float
+    score_se: float
+    size: int
+    status: str  # "scored", "rejected" (misfit far above the best), "blew up", "not refined"
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """How the closed system was fitted by integration (multiple shooting).
+
+    ``misfit_before`` / ``misfit_after``: RMS of (model - data) / std(data) over the
+    observed states, with the closure's coefficients and with the refined ones.
+    """
+
+    misfit_before: float
+    misfit_after: float
+    continuity_gap: float  # largest gap between segments, in noise units
+    n_segments: int
+    iterations: int
+    status: str
+
+
+@dataclass(frozen=True)
+class HiddenComparison:
+    """How well inferred hidden states match known ones, up to an affine map.
+
+    Attributes
+    ----------
+    r2 : ndarray, shape (n_true,)
+        R^2 of each true hidden variable predicted affinely from the inferred ones.
+    scale : ndarray, shape (n_hidden, n_true)
+    offset : ndarray, shape (n_true,)
+        The map: ``true ~ hidden @ scale + offset``.
+    observed_scale : ndarray, shape (n_observed, n_true), or None
+        With ``with_observed=True``, the observed states' part of the map.
+    """
+
+    r2: np.ndarray
+    scale: np.ndarray
+    offset: np.ndarray
+    observed_scale: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class HiddenDiscovery:
+    """Observed plus hidden states and the closed ODE that governs them.
+
+    Attributes
+    ----------
+    times, observed, hidden : ndarray
+        First trajectory: times, observed states (n_times, n_observed), hidden states
+        (n_times, n_hidden). With refinement on, ``hidden`` is the closed system's
+        trajectory fitted to the data; the stage-two estimate is ``hidden_initial``.
+    hidden_std : ndarray (n_times, n_hidden)
+        Standard deviation of the hidden states (from the refinement's covariance;
+        the generator's posterior std without refinement; NaN where unknown).
+    observed_names, hidden_names : tuple of str
+    hidden_states : tuple of HiddenState
+    terms : tuple of Term
+        The closed system, term by term, with standard errors.
+    score, score_se : float
+        Held-out misfit (noise variances; about 1 when the system reproduces data it
+        was not fitted to down to their noise) and its standard error.
+    alternatives : tuple of Alternative
+        The other structures considered, best first.
+    uncertain : tuple of Alternative
+        Structures with other hidden states (other carriers, another number of hidden
+        states) that explain the data equally well (score within one standard error):
+        the data cannot tell them apart; the simplest one is reported.
+    doubts : tuple of str
+        Checks the reported system failed, each a sentence saying what it means: it
+        could not be scored or does not reproduce held-out data down to their noise, its
+        refinement did not converge, a hidden-equation coefficient is within two
+        standard errors of zero, or a term can be exchanged for another with almost no
+        loss of fit. Without refinement (``refine=False``) nothing was checked, and that
+        is the doubt. Empty when every check passed.
+    notes : tuple of str
+        Remarks that are not doubts (a hidden state with no dynamics of its own, names
+        that could not be used).
+    refinement : Refinement or None
+    coefficients : CoefficientSeries
+        Stage one's result (first trajectory).
+    """
+
+    times: np.ndarray
+    observed: np.ndarray
+    hidden: np.ndarray
+    hidden_std: np.ndarray
+    observed_names: tuple
+    hidden_names: tuple
+    hidden_states: tuple
+    terms: tuple
+    coefficients: CoefficientSeries
+    score: float = math.nan
+    score_se: float = math.nan
+    alternatives: tuple = ()
+    uncertain: tuple = ()
+    refinement: Refinement | None = None
+    notes: tuple = ()
+    all_times: list = field(repr=False, default_factory=list)
+    all_observed: list = field(repr=False, default_factory=list)
+    all_hidden: list = field(repr=False, default_factory=list)
+    hidden_initial: list = field(repr=False, default_factory=list)
+    initial_state: np.ndarray = field(repr=False, default=None)
+    doubts: tuple = ()
+
+    # ----------------------------------------------------------- views
+    @property
+    def confident(self) -> bool:
+        """True when the reported system was checked by integration, no other
+        structure explains the data as well (``uncertain`` is empty) and it passed every
+        check (``doubts`` is empty). Read it before trusting an equation."""
+        return (self.refinement is not None and bool(np.isfinite(self.score))
+                and not self.uncertain and not self.doubts)
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        return self.observed_names + self.hidden_names
+
+    @property
+    def symbols(self) -> list[sp.Symbol]:
+        return [sp.Symbol(n, real=True) for n in self.state_names]
+
+    @property
+    def hidden_terms(self) -> tuple:
+        """Per hidden state, the (equation, feature) terms it enters (empty for a rate)."""
+        return tuple(h.terms for h in self.hidden_states)
+
+    @property
+    def rhs(self) -> dict:
+        """Time derivative of each state (sympy), built from :attr:`terms`."""
+        out = {n: sp.Integer(0) for n in self.state_names}
+        for term in self.terms:
+            if term.value != 0:
+                out[term.state] += sp.Float(term.value) * term.feature
+        return out
+
+    @property
+    def equations(self) -> list[sp.Eq]:
+        """``d state/dt = rhs`` as sympy equations, for display."""
+        tt = sp.Symbol("t")
+        rhs = self.rhs
+        return [sp.Eq(sp.Derivative(sp.Function(n)(tt), tt), rhs[n]) for n in self.state_names]
+
+    @property
+    def states(self) -> np.ndarray:
+        """Observed and hidden states side by side (first trajectory)."""
+        return np.hstack([self.observed, self.hidden])
+
+    def equation(self, state: str) -> dict:
+        """The terms of ``d state/dt`` as {feature (sympy expression): coefficient}."""
+        self._check_state(state)
+        return {t.feature: t.value for t in self.terms if t.state == state and t.value != 0}
+
+    def coefficient(self, state: str, feature) -> float:
+        """Coefficient of ``feature`` (sympy expression or string such as ``"h*x"``) in
+        ``d state/dt``; 0 if absent."""
+        self._check_state(state)
+        expr = sp.sympify(feature, locals={n: s for n, s in zip(self.state_names, self.symbols,
+                                                                 strict=True)}) \
+            if isinstance(feature, str) else sp.sympify(feature)
+        unknown = {str(s) for s in expr.free_symbols} - set(self.state_names)
+        if unknown:
+            raise ValueError(f"feature {feature!r} uses {sorted(unknown)}, which are not states "
+                             f"of this system; states are {list(self.state_names)}.")
+        for term in self.terms:
+            if term.state == state and sp.expand(term.feature - expr) == 0:
+                return term.value
+        return 0.0
+
+    def _check_state(self, state):
+        if state not in self.state_names:
+            raise ValueError(f"Unknown state {state!r}; states are {list(self.state_names)}.")
+
+    def vector_field(self) -> VectorField:
+        """The closed vector field ``f(t, y)`` for numpy arrays or torch tensors."""
+        rhs = self.rhs
+        return VectorField(self.symbols, [rhs[n] for n in self.state_names])
+
+    # ----------------------------------------------------------- checks
+    def simulate(self, t=None, x0=None, *, max_steps=20_000) -> Simulation:
+        """Integrate the closed system with torchdiffeq (dopri5, finite step budget).
+
+        ``x0`` defaults to the fitted state at the first sample (observed and hidden);
+        a blow-up or an exhausted budget is reported in the result's ``status``.
+        """
+        t = self.times if t is None else np.asarray(t, dtype=float)
+        x0 = self.initial_state if x0 is None else np.asarray(x0, dtype=float)
+        if x0.shape != (len(self.state_names),):
+            raise ValueError(f"x0 must have shape ({len(self.state_names)},) for states "
+                             f"{list(self.state_names)}; got shape {x0.shape}.")
+        bound = 1e3 * max(1.0, float(np.nanmax(np.abs(self.states))))
+        return integrate(self.vector_field(), t, x0, self.state_names, bound=bound,
+                         max_steps=max_steps)
+
+    def compare_hidden(self, true_hidden, *, with_observed=False) -> HiddenComparison:
+        """R^2 of known hidden variables against the inferred ones after the best affine
+        map (first trajectory).
+
+        A hidden state is defined by the coefficient it carries, so it can be the true
+        variable shifted by observed states (Rossler with z hidden: ``xdot = h`` with
+        ``h = -y - z``). ``with_observed=True`` lets the map use the observed states too
+        (``true ~ hidden @ scale + observed @ observed_scale + offset``).
+        """
+        truth = np.asarray(true_hidden, dtype=float)
+        truth = truth[:, None] if truth.ndim == 1 else truth
+        if truth.shape[0] != self.hidden.shape[0]:
+            raise ValueError(f"true_hidden has {truth.shape[0]} rows but the hidden states have "
+                             f"{self.hidden.shape[0]}; pass the series on the same times.")
+        if not isinstance(with_observed, bool):
+            raise TypeError(f"with_observed must be True or False; got {with_observed!r}.")
+        extra = self.observed if with_observed else np.zeros((len(truth), 0))
+        design = np.hstack([self.hidden, extra, np.ones((len(truth), 1))])
+        coef, *_ = np.linalg.lstsq(design, truth, rcond=None)
+        resid = truth - design @ coef
+        r2 = 1 - np.sum(resid**2, axis=0) / np.sum((truth - truth.mean(axis=0)) ** 2, axis=0)
+        n_h = self.hidden.shape[1]
+        return HiddenComparison(r2, coef[:n_h], coef[-1],
+                                coef[n_h:-1] if with_observed else None)
+
+    def to_latex(self) -> str:
+        """The equations as a LaTeX ``aligned`` block."""
+        rhs = self.rhs
+        lines = [rf"\dot{{{sp.latex(s)}}} &= {sp.latex(rhs[n])}"
+                 for s, n in zip(self.symbols, self.state_names, strict=True)]
+        return "\\begin{aligned}\n" + " \\\\\n".join(lines) + "\n\\end{aligned}"
+
+    def summary(self) -> str:
+        """The closed system, its coefficients with standard errors, how it was fitted
+        and judged, doubts, equally good alternatives (or the runner-up) and notes."""
+        lines = [f"Closed system: {len(self.observed_names)} observed + "
+                 f"{len(self.hidden_names)} hidden state(s)"]
+        lines += [f"  hidden: {h.describe()}" for h in self.hidden_states]
+        rhs = self.rhs
+        lines += [f"  d{n}/dt = {_short(rhs[n])}" for n in self.state_names]
+        estimated = [t for t in self.terms if t.state in self.hidden_names and not t.fixed
+                     and np.isfinite(t.stderr)]
+        if estimated:
+            lines.append("  hidden-equation coefficients (value +- standard error):")
+            lines += [f"    d{t.state}/dt: {t.feature}: {t.value:.6g} +- {t.stderr:.2g}"
+                      for t in estimated]
+        if self.refinement is not None:
+            r = self.refinement
+            lines.append(f"  refined by integration: misfit {r.misfit_before:.4g} -> "
+                         f"{r.misfit_after:.4g} (RMS / std of the data), {r.n_segments} "
+                         f"segments, {r.status}")
+        if np.isfinite(self.score):
+            lines.append(f"  held-out score {self.score:.4g} +- {self.score_se:.2g} "
+                         "(noise variances; ~1: reproduces unseen data down to its noise)")
+        lines += [f"  DOUBT: {d}" for d in self.doubts]
+        if self.uncertain:
+            lines.append("  STRUCTURE UNCERTAIN: these hidden states explain the data equally "
+                         "well (score within one standard error; the simplest is shown above):")
+            for alt in self.uncertain:
+                lines.append(f"    - {alt.description}: score {alt.score:.4g} +- "
+                             f"{alt.score_se:.2g}, {alt.size} parameters")
+                lines += [f"        d{n}/dt = {_short(e)}" for n, e in alt.rhs.items()]
+        elif self.alternatives:
+            alt = self.alternatives[0]
+            what = "score" if alt.status == "scored" else "in-sample misfit"
+            value = f"{what} {alt.score:.4g} " if np.isfinite(alt.score) else ""
+            lines.append(f"  runner-up: {alt.description}, {value}({alt.status}), "
+                         f"{alt.size} parameters")
+        lines += [f"  note: {n}" for n in self.notes]
+        return "\n".join(lines)
+
+    def plot(self, truth=None, *, path=None, simulation=None, figsize=None):
+        """Observed data against the closed system; hidden states with their band.
+
+        Needs matplotlib (``pip install "latentsindy[plot]"``).
+
+        Parameters
+        ----------
+        truth : array (n_times,) or (n_times, n_true), optional
+            Known hidden variables (first trajectory), drawn after the best affine map
+            into each hidden state's units.
+        path : str or Path, optional
+            Also save the figure there.
+        simulation : Simulation, optional
+            Reuse a ``simulate()`` result instead of integrating again.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+        """
+        return plot_discovery(self, truth, simulation=simulation, figsize=figsize, path=path)
+
+    # ----------------------------------------------------------- persistence
+    def save(self, path) -> None:
+        """Write the result to a ``.npz`` file (see :func:`load`)."""
+        saving.save(self, path)
+
+
+def _short(expr):
+    return str(expr.xreplace({f: sp.Float(float(f), 5) for f in expr.atoms(sp.Float)}))

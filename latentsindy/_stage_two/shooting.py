@@ -1,0 +1,196 @@
+"""Multiple shooting: a closed system integrated segment by segment against the data.
+
+Each trajectory is cut into segments of equal duration; every segment starts from a
+free state (observed and hidden) and is integrated with torchdiffeq (classical
+Runge-Kutta on a fixed grid, so the cost is known in advance) together with its forward
+sensitivities with respect to the start and to the free coefficients. States at the
+sample times come from cubic Hermite interpolation between grid points (the same
+order as the integrator). The observed samples give the data residuals; the gap
+between a segment's end and the next segment's start gives the continuity residuals.
+
+The least-squares normal equations have an arrow structure (coefficients couple
+everything, each start couples only its own segment and its neighbours), so they are
+assembled block by block and solved sparsely: memory grows with the number of
+segments, not with their product.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sps
+import torch
+from scipy.sparse.linalg import spsolve
+from torchdiffeq import odeint
+
+from .field import FeatureMap, ParametricSystem
+
+
+class BlowUp(Exception):
+    """A segment left the bounded region (or became non-finite)."""
+
+
+@dataclass
+class Group:
+    """Segments of one trajectory: equal duration, one integration grid."""
+
+    trajectory: int
+    first: int  # index of the first segment in the global list
+    n_segments: int
+    grid: torch.Tensor  # (G,) relative times of the integration grid
+    positions: torch.Tensor  # (K, M) relative sample times (padded)
+    observed: torch.Tensor  # (K, M, n_observed) data (padded)
+    mask: torch.Tensor  # (K, M) bool: a real sample
+    sample_index: np.ndarray  # (K, M) index of the sample in its trajectory (-1: padding)
+    starts: np.ndarray  # (K,) absolute start times
+
+
+def make_groups(times, observed, duration, step):
+    """Cut every trajectory into segments of about ``duration`` with grid ``step``."""
+    groups, first = [], 0
+    for k, (t, x) in enumerate(zip(times, observed, strict=True)):
+        span = float(t[-1] - t[0])
+        n_seg = max(1, int(round(span / duration)))
+        seg = span / n_seg
+        n_steps = max(1, int(np.ceil(seg / step)))
+        which = np.minimum(((t - t[0]) / seg).astype(int), n_seg - 1)
+        counts = np.bincount(which, minlength=n_seg)
+        m = int(counts.max())
+        pos = np.zeros((n_seg, m))
+        obs = np.zeros((n_seg, m, x.shape[1]))
+        mask = np.zeros((n_seg, m), dtype=bool)
+        index = np.full((n_seg, m), -1)
+        for s in range(n_seg):
+            rows = np.flatnonzero(which == s)
+            pos[s, :len(rows)] = t[rows] - (t[0] + s * seg)
+            obs[s, :len(rows)] = x[rows]
+            mask[s, :len(rows)] = True
+            index[s, :len(rows)] = rows
+        as_t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
+        groups.append(Group(k, first, n_seg, as_t(np.linspace(0.0, seg, n_steps + 1)),
+                            as_t(np.clip(pos, 0.0, seg)), as_t(obs), torch.as_tensor(mask),
+                            index, t[0] + seg * np.arange(n_seg)))
+        first += n_seg
+    return groups
+
+
+class Integrator:
+    """Integrates batches of segments of one system with forward sensitivities."""
+
+    def __init__(self, system: ParametricSystem, bound: float, features=None):
+        self.system = system
+        self.features = features or FeatureMap(system.features, system.symbols)
+        self.rows, self.cols = (torch.as_tensor(a) for a in np.nonzero(system.free))
+        self.bound = bound
+
+    def _check(self, y):
+        top = float(y.abs().max())  # NaN fails the comparison too
+        if not top <= self.bound:
+            raise BlowUp()
+
+    def _field(self, coef):
+        n = len(self.system.state_names)
+        rows, cols = self.rows, n + torch.arange(len(self.rows))
+        take = self.cols
+
+        def func(t, z):
+            y = z[..., 0]
+            self._check(y)
+            phi, dphi = self.features(y)
+            sens = (coef @ dphi) @ z[..., 1:]  # d/dt S = J S (+ df/dcoef below)
+            sens[..., rows, cols] += phi[..., take]
+            return torch.cat([(phi @ coef.T)[..., None], sens], dim=-1)
+
+        return func
+
+    def _plain(self, coef):
+        def func(t, y):
+            self._check(y)
+            return self.features(y, gradients=False)[0] @ coef.T
+
+        return func
+
+    @torch.no_grad()
+    def run(self, coef, starts, group: Group, sensitivities=True):
+        """States (and sensitivities) at the group's sample times and at segment ends.
+
+        Returns ``(values, ends)``; with sensitivities each is a pair (state, S) where
+        S is d state / d(start, free coefficients), shape (..., n, n + n_free).
+        """
+        coef = torch.as_tensor(coef, dtype=torch.float64)
+        y0 = torch.as_tensor(starts, dtype=torch.float64)
+        n = y0.shape[-1]
+        if sensitivities:
+            eye = torch.eye(n, dtype=torch.float64).expand(y0.shape[0], n, n)
+            z0 = torch.cat([y0[..., None], eye,
+                            torch.zeros(y0.shape[0], n, len(self.rows), dtype=torch.float64)],
+                           dim=-1)
+            func = self._field(coef)
+        else:
+            z0, func = y0, self._plain(coef)
+        z = odeint(func, z0, group.grid, method="rk4")  # (G, K, ...) on the grid
+        dz = func(None, z)
+        z, dz = z.transpose(0, 1), dz.transpose(0, 1)  # (K, G, ...)
+        values = _hermite(z, dz, group.grid, group.positions)
+        ends = z[:, -1]
+        if sensitivities:
+            return (values[..., 0], values[..., 1:]), (ends[..., 0], ends[..., 1:])
+        return values, ends
+
+
+def _hermite(z, dz, grid, positions):
+    """Cubic Hermite interpolation of grid values z (K, G, ...) at positions (K, M)."""
+    h = grid[1] - grid[0]
+    j = torch.clamp((positions / h).floor().long(), 0, len(grid) - 2)
+    s = (positions - grid[j]) / h
+    extra = z.dim() - 2
+    s = s.reshape(*s.shape, *([1] * extra))
+    take = lambda a, idx: torch.gather(  # noqa: E731
+        a, 1, idx.reshape(*idx.shape, *([1] * extra)).expand(*idx.shape, *a.shape[2:]))
+    z0, z1, d0, d1 = take(z, j), take(z, j + 1), take(dz, j), take(dz, j + 1)
+    s2, s3 = s * s, s * s * s
+    return ((2 * s3 - 3 * s2 + 1) * z0 + (s3 - 2 * s2 + s) * h * d0
+            + (-2 * s3 + 3 * s2) * z1 + (s3 - s2) * h * d1)
+
+
+class NormalEquations:
+    """Block assembly of J^T J and J^T r for (free coefficients, segment starts)."""
+
+    def __init__(self, n_free, n_segments, n_states):
+        self.p, self.k, self.n = n_free, n_segments, n_states
+        self.size = n_free + n_segments * n_states
+        self.rows, self.cols, self.vals = [], [], []
+        self.grad = np.zeros(self.size)
+        self.cost = 0.0
+
+    def index(self, segment):
+        return self.p + segment * self.n + np.arange(self.n)
+
+    def add(self, jac, resid, segments):
+        """Rows ``jac`` (B, R, P + n * len(segments)) for the residuals ``resid`` (B, R)
+        of the blocks whose starts are ``segments`` (B, len(segments))."""
+        jac, resid = np.asarray(jac), np.asarray(resid)
+        gram = np.einsum("brc,brd->bcd", jac, jac)
+        grad = np.einsum("brc,br->bc", jac, resid)
+        self.cost += float(np.sum(resid**2))
+        idx = np.concatenate([np.broadcast_to(np.arange(self.p), (len(segments), self.p)),
+                              self.p + (segments[..., None] * self.n
+                                        + np.arange(self.n)).reshape(len(segments), -1)],
+                             axis=1)
+        np.add.at(self.grad, idx, grad)
+        self.rows.append(np.repeat(idx[:, :, None], idx.shape[1], axis=2).ravel())
+        self.cols.append(np.repeat(idx[:, None, :], idx.shape[1], axis=1).ravel())
+        self.vals.append(gram.ravel())
+
+    def matrix(self):
+        return sps.csc_matrix((np.concatenate(self.vals), (np.concatenate(self.rows),
+                                                           np.concatenate(self.cols))),
+                              shape=(self.size, self.size))
+
+
+def solve(matrix, rhs):
+    """Solve a symmetric positive (semi)definite sparse system, densely when small."""
+    if matrix.shape[0] <= 600:
+        return np.linalg.solve(matrix.toarray(), rhs)
+    return spsolve(matrix, rhs)

@@ -1,0 +1,234 @@
+"""Term selection on the integrated likelihood: drops, additions, swaps, merges and
+exchanges.
+
+A closed system's terms are chosen by the extended Bayesian information criterion of
+its fit by integration: ``misfit / s^2 + k (log(n) + log(p))`` (misfit in noise
+variances, ``s^2`` the residual variance, never below 1 so exact data do not make the
+integrator's own error look like signal; ``k`` free coefficients, ``n`` data, ``p`` the
+pool of terms searched). Greedy backward elimination
+alone goes wrong among collinear terms (at 10% noise on prey-only Lotka-Volterra it
+drops the real ``x`` and keeps ``x^2`` and ``h^2`` that compensate), so every step
+considers dropping a term, adding a candidate, swapping one for another, merging
+two into one, and (when none of these helps) exchanging two terms of an equation for
+two others (a combination of terms that is nearly constant along the data, such as
+an oscillator's energy ``a x^2 + b y^2``, stands in for the constant term; only a move
+that removes both and adds the constant finds the smaller system).
+
+All moves are scored at once on the fit's local quadratic model (Gauss-Newton: the
+normal equations at the current point, the segment starts eliminated by their Schur
+complement, so each move costs a solve the size of the coefficient count); the best
+one is then refitted exactly and kept only if the exact criterion improves.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sps
+import scipy.sparse.linalg as spla
+
+from .field import ParametricSystem
+from .refine import Fit, Problem
+
+MAX_STEPS = 12
+MAX_ATTEMPTS = 3  # exact refits tried per step before giving up
+# Exchanging terms that changes the misfit by less than this (residual variances) is not
+# refused by the data: a likelihood-ratio difference of 4 is two standard errors of one
+# coefficient.
+AMBIGUITY = 4.0
+
+
+def select_terms(problem: Problem, fit: Fit, candidates, max_steps=MAX_STEPS):
+    """Improve the set of free coefficients of ``fit.system`` by BIC; ``candidates``
+    (bool, like ``system.free``) are the coefficients that may be added. Returns the
+    final fit and the moves made: ("drop"/"add", cell, predicted BIC change),
+    ("swap", (out, in), change), ("merge", ((out, out), in), change) or
+    ("exchange", ((out, out), (in, in)), change)."""
+    # extended BIC (Chen & Chen 2008, gamma = 1/2): the price of a term grows with the
+    # number of terms it was chosen from, so that searching many candidates does not
+    # let one of them in by chance
+    pool = int((candidates | fit.system.free).sum())
+    price = float(np.log(max(problem.n_data, 2)) + np.log(max(pool, 1)))
+    history, tabu = [], set()
+    for _ in range(max_steps):
+        s2 = max(fit.residual_variance, 1.0)
+        model = _Quadratic(problem, fit, candidates & ~fit.system.free)
+        base = _bic(fit, s2, price)
+        trial = _first_better(problem, fit, model, model.moves(price, s2), base, s2, price,
+                              tabu)
+        if trial is None:  # no single move helps: exchange two terms of an equation
+            trial = _first_better(problem, fit, model, model.exchanges(s2), base, s2, price,
+                                  tabu)
+        if trial is None:
+            break
+        fit, move, gain = trial
+        history.append((*move, gain))
+    return fit, history
+
+
+def _first_better(problem, fit, model, moves, base, s2, price, tabu):
+    """The first of ``moves`` (best predicted first) whose exact refit lowers the
+    criterion, as (fit, move, predicted gain); None after MAX_ATTEMPTS refits."""
+    attempts = 0
+    for gain, move, keep in moves:
+        if gain <= 1e-6 or attempts >= MAX_ATTEMPTS:
+            return None
+        if move in tabu:
+            continue
+        attempts += 1
+        trial = _refit(problem, fit, model, keep)
+        if trial is not None and _bic(trial, s2, price) < base:
+            return trial, move, float(gain)
+        tabu.add(move)  # the quadratic model promised more than the exact refit
+    return None
+
+
+def ambiguities(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS):
+    """Swaps, merges and two-for-two exchanges of ``fit``'s terms that the data do
+    not refuse: the exchanged
+    system, refitted exactly, is worse by less than ``AMBIGUITY`` residual variances.
+    Returns [(move, change)], at most ``limit`` tried, most plausible first."""
+    s2 = max(fit.residual_variance, 1.0)
+    model = _Quadratic(problem, fit, candidates & ~fit.system.free)
+    found = []
+    tried = 0
+    moves = [m for m in model.moves(0.0, s2) if m[1][0] in ("swap", "merge")]
+    for gain, move, keep in sorted(moves + model.exchanges(s2), key=lambda m: -m[0]):
+        if -gain >= AMBIGUITY or tried >= limit:
+            break
+        tried += 1
+        trial = _refit(problem, fit, model, keep)
+        change = None if trial is None else (trial.data_cost - fit.data_cost) / s2
+        if change is not None and change < AMBIGUITY:
+            found.append((move, float(change)))
+    return found
+
+
+def _bic(fit, s2, price):
+    return fit.data_cost / s2 + price * fit.system.n_free  # continuity penalty left out
+
+
+def _refit(problem, fit, model, keep):
+    """Exact fit with the coefficients ``keep`` (over the model's cells) free."""
+    system = fit.system
+    free = np.zeros_like(system.free)
+    coef = system.coef.copy()
+    for on, cell, value in zip(keep, model.cells, model.values_after(keep), strict=True):
+        free[cell] = on
+        if on or system.free[cell]:
+            coef[cell] = value
+    new = ParametricSystem(system.state_names, system.n_observed, system.features, coef, free)
+    try:
+        return problem.fit(new, fit.starts)
+    except Exception:  # noqa: BLE001 - a move whose system blows up is not taken
+        return None
+
+
+class _Quadratic:
+    """The misfit around ``fit`` as a quadratic in the coefficients (current free ones
+    and the candidates at zero), starts eliminated."""
+
+    def __init__(self, problem, fit, allowed):
+        system = fit.system
+        aug = ParametricSystem(system.state_names, system.n_observed, system.features,
+                               system.coef, system.free | allowed)
+        eq = problem.equations(aug, fit.starts, np.ones(problem.n_segments), fit.rho)
+        self.cells = list(zip(*np.nonzero(aug.free), strict=True))
+        p = len(self.cells)
+        a = eq.matrix().tocsc()
+        g = eq.grad
+        a_pp = a[:p, :p].toarray()
+        a_ps = a[:p, p:].toarray()
+        a_ss = a[p:, p:].tocsc()
+        if a_ss.shape[0]:
+            ridge = 1e-12 * max(float(a_ss.diagonal().max()), 1e-300)
+            lu = spla.splu((a_ss + ridge * sps.identity(a_ss.shape[0])).tocsc())
+            x = lu.solve(np.column_stack([a_ps.T, g[p:]]))
+            self.a = a_pp - a_ps @ x[:, :p]
+            self.g = g[:p] - a_ps @ x[:, p]
+        else:
+            self.a, self.g = a_pp, g[:p]
+        self.values = np.array([aug.coef[c] for c in self.cells])
+        self.current = np.array([bool(system.free[c]) for c in self.cells])
+
+    def predicted(self, keep):
+        """Predicted misfit change when only ``keep`` (bool over cells) is free."""
+        return self._solve(keep)[0]
+
+    def values_after(self, keep):
+        """The coefficients (over cells) at the model's minimum with only ``keep`` free:
+        the start of the exact refit (kept terms already compensate for removed ones)."""
+        step = self._solve(keep)[1]
+        values = np.where(keep, self.values, 0.0)
+        if step is not None:
+            values[keep] += step
+        return values
+
+    def _solve(self, keep):
+        removed = self.current & ~keep
+        d_r = -self.values[removed]
+        a_kk = self.a[np.ix_(keep, keep)]
+        rhs = -(self.g[keep] + self.a[np.ix_(keep, removed)] @ d_r)
+        try:
+            d_k = np.linalg.solve(a_kk + 1e-12 * np.trace(a_kk) * np.eye(len(a_kk)), rhs) \
+                if keep.any() else np.zeros(0)
+        except np.linalg.LinAlgError:
+            return np.inf, None
+        quad = (d_k @ a_kk @ d_k + 2 * d_k @ self.a[np.ix_(keep, removed)] @ d_r
+                + d_r @ self.a[np.ix_(removed, removed)] @ d_r)
+        return float(2 * (self.g[keep] @ d_k + self.g[removed] @ d_r) + quad), d_k
+
+    def moves(self, price, s2):
+        """(BIC gain, move, keep) for every drop, addition, swap and merge, best
+        first."""
+        base = self.predicted(self.current)
+        k0 = int(self.current.sum())
+        inside = np.flatnonzero(self.current)
+        outside = np.flatnonzero(~self.current)
+        out = []
+
+        def consider(move, keep):
+            change = (self.predicted(keep) - base) / s2 + price * (int(keep.sum()) - k0)
+            out.append((-change, move, keep))
+
+        for i in inside:
+            keep = self.current.copy()
+            keep[i] = False
+            consider(("drop", self.cells[i]), keep)
+        for j in outside:
+            keep = self.current.copy()
+            keep[j] = True
+            consider(("add", self.cells[j]), keep)
+            for a, i in enumerate(inside):
+                swap = keep.copy()
+                swap[i] = False
+                consider(("swap", (self.cells[i], self.cells[j])), swap)
+                for i2 in inside[a + 1:]:
+                    merge = swap.copy()
+                    merge[i2] = False
+                    consider(("merge", ((self.cells[i], self.cells[i2]), self.cells[j])),
+                             merge)
+        out.sort(key=lambda m: -m[0])
+        return out
+
+    def exchanges(self, s2):
+        """(gain, move, keep) for every exchange of two terms of one equation for two
+        others of that equation (the same size; misfit change only), best first."""
+        base = self.predicted(self.current)
+        rows = sorted({cell[0] for cell in self.cells})
+        out = []
+        for row in rows:
+            here = np.array([cell[0] == row for cell in self.cells])
+            inside = np.flatnonzero(self.current & here)
+            outside = np.flatnonzero(~self.current & here)
+            for a, i in enumerate(inside):
+                for i2 in inside[a + 1:]:
+                    for b, j in enumerate(outside):
+                        for j2 in outside[b + 1:]:
+                            keep = self.current.copy()
+                            keep[[i, i2]] = False
+                            keep[[j, j2]] = True
+                            move = ("exchange", ((self.cells[i], self.cells[i2]),
+                                                 (self.cells[j], self.cells[j2])))
+                            out.append((-(self.predicted(keep) - base) / s2, move, keep))
+        out.sort(key=lambda m: -m[0])
+        return out

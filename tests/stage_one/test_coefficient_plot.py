@@ -1,0 +1,27 @@
+"""The coefficient figure: mean, band, truth and switch lines."""
+
+import matplotlib
+import numpy as np
+import pytest
+
+from latentsindy import CoefficientSeries
+
+matplotlib.use("Agg")
+
+
+def test_coefficient_plot_marks_switches_and_truth(tmp_path):
+    """A coefficient that steps from 1 to 2 at t = 5: its panel shows the mean, the
+    band, the truth and one switch line at 5 (within a sample spacing of the grid)."""
+    t = np.linspace(0.0, 10.0, 501)
+    step = np.where(t < 5.0, 1.0, 2.0)
+    samples = np.stack([step + 0.01 * k for k in range(-2, 3)])[:, :, None, None]
+    series = CoefficientSeries.from_samples(t, samples.mean(axis=0), samples, ["x"], ["y"],
+                                            np.ones((1, 1), bool), np.ones((1, 1), bool))
+    fig = series.plot(truth={("x", "y"): step}, path=tmp_path / "c.png")
+    (ax,) = fig.axes
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    assert set(lines) == {"posterior mean", "truth", "switch"}
+    assert abs(lines["switch"].get_xdata()[0] - 5.0) <= 0.05
+    assert (tmp_path / "c.png").exists()
+    with pytest.raises(KeyError, match="Unknown feature 'z'"):
+        series.plot(terms=[("x", "z")])

@@ -1,0 +1,181 @@
+"""The discrete steps between the phases: pruned terms the data need come back (a
+forward step); variation the data do not need is frozen (a backward step)."""
+
+import numpy as np
+import torch
+from torch import nn
+
+from latentsindy._stage_one.decisions import (
+    freeze_constant_terms,
+    restore_absorbed_terms,
+    restore_terms,
+)
+from latentsindy._stage_one.training import CoefficientModel
+
+
+class _Flat(nn.Module):
+    """A generator with no time variation (Xi = constants)."""
+
+    def __init__(self, n_out):
+        super().__init__()
+        self.n_out = n_out
+
+    def sample(self, inputs, n_samples):
+        return torch.zeros(max(n_samples, 1), inputs.shape[-1], self.n_out), torch.zeros(())
+
+
+def _problem(small=-0.5):
+    """Normalised library [a, b, c] with b nearly collinear with a; xdot = 2a + small*b."""
+    t = np.linspace(0, 20, 2000)
+    a = np.sin(t)
+    b = np.sin(t) + 0.3 * np.cos(1.3 * t)
+    c = np.cos(3.7 * t)
+    theta = np.stack([a, b, c], axis=1)
+    theta /= np.sqrt(np.mean(theta**2, axis=0))
+    truth = np.array([2.0, small, 0.0])
+    xdot = theta @ truth
+    scale = np.sqrt(np.mean(xdot**2))
+    as_t = lambda v: torch.as_tensor(v, dtype=torch.float32)  # noqa: E731
+    return (as_t(theta[None]), as_t(xdot[None, :, None] / scale), truth / scale,
+            torch.zeros(1, 2, 2000))
+
+
+def _model(theta, xdot, support):
+    support = torch.as_tensor(support)[None]
+    a = theta[0][:, support[0]]
+    constants = torch.zeros(1, 3)
+    constants[0, support[0]] = torch.linalg.lstsq(a, xdot[0]).solution[:, 0]
+    return CoefficientModel(_Flat(3), constants, support, torch.ones(1, 3))
+
+
+def test_collinear_term_is_restored_with_exact_constants():
+    """b explains little beyond a, but it is real and above threshold: it returns, and
+    the joint refit gives the true constants (1e-4); c, which explains nothing, stays out;
+    the restored term is a constant."""
+    theta, xdot, truth, inputs = _problem()
+    model = _model(theta, xdot, [True, False, False])
+    weights = torch.ones_like(xdot)
+    restored = restore_terms(model, theta, xdot, weights, inputs, 0.05, torch.tensor([True]))
+    assert restored == [(0, 1)]
+    assert model.support.tolist() == [[True, True, False]]
+    assert model.time_varying.tolist() == [[1.0, 0.0, 1.0]]
+    np.testing.assert_allclose(model.constants[0, :2].detach().numpy(), truth[:2], atol=1e-4)
+
+
+def test_small_term_and_fixed_rows_are_not_restored():
+    """A real term below the threshold stays pruned; rows with a user-fixed support are
+    left alone."""
+    theta, xdot, truth, inputs = _problem(small=-0.02)
+    assert abs(truth[1]) < 0.05
+    model = _model(theta, xdot, [True, False, False])
+    weights = torch.ones_like(xdot)
+    assert restore_terms(model, theta, xdot, weights, inputs, 0.05, torch.tensor([True])) == []
+    theta, xdot, _, inputs = _problem()
+    model = _model(theta, xdot, [True, False, False])
+    assert restore_terms(model, theta, xdot, weights, inputs, 0.05, torch.tensor([False])) == []
+    assert model.support.tolist() == [[True, False, False]]
+
+
+class _Given(nn.Module):
+    """A generator that returns a fixed coefficient series (1, T, n_out)."""
+
+    def __init__(self, series):
+        super().__init__()
+        self.series = series
+
+    def sample(self, inputs, n_samples):
+        return self.series.expand(max(n_samples, 1), -1, -1), torch.zeros(())
+
+
+def _varying_problem():
+    """xdot = (2 + 0.5 sin 0.3t) a - 0.5 b; the model's b also varies (0.1 cos 2.1t),
+    a variation the data do not contain."""
+    t = np.linspace(0, 20, 2000)
+    theta, _, _, inputs = _problem()
+    varying = np.stack([0.5 * np.sin(0.3 * t), 0.1 * np.cos(2.1 * t), 0 * t], axis=1)
+    xdot = theta[0].numpy() @ np.array([2.0, -0.5, 0.0]) + theta[0, :, 0].numpy() * varying[:, 0]
+    model = CoefficientModel(_Given(torch.as_tensor(varying[None], dtype=torch.float32)),
+                             torch.tensor([[2.0, -0.5, 0.0]]), torch.tensor([[True, True, False]]),
+                             torch.ones(1, 3))
+    return model, theta, torch.as_tensor(xdot[None, :, None], dtype=torch.float32), inputs, varying
+
+
+def test_unneeded_variation_is_frozen_at_its_mean():
+    """b's variation explains nothing beyond constants: b becomes the constant mean of its
+    coefficient (1e-6); a's real variation stays; the inactive c is not touched."""
+    model, theta, xdot, inputs, varying = _varying_problem()
+    weights = torch.ones_like(xdot)
+    frozen = freeze_constant_terms(model, theta, xdot, weights, inputs, 1e-3,
+                                   torch.tensor([True]))
+    assert frozen == [(0, 1)]
+    assert model.time_varying.tolist() == [[1.0, 0.0, 1.0]]
+    assert abs(float(model.constants[0, 1].detach()) - (-0.5 + varying[:, 1].mean())) < 1e-6
+
+
+def test_variation_is_kept_when_it_pays_and_on_fixed_rows():
+    """A cost above what a's variation explains beyond constants (its least-squares
+    share of the mean squared derivative) freezes it too; rows with a user-fixed support
+    are left alone whatever the cost."""
+    model, theta, xdot, inputs, _ = _varying_problem()
+    weights = torch.ones_like(xdot)
+    columns = torch.cat([theta[0], theta[0, :, :1] * model.generator.series[0, :, :1]], dim=1)
+    fit = torch.linalg.lstsq(theta[0].double(), xdot[0].double()).solution
+    misfit = float(torch.mean((theta[0].double() @ fit - xdot[0]) ** 2))
+    assert misfit > 1e-3  # the variation matters: constants alone leave this misfit
+    assert torch.linalg.matrix_rank(columns) == 4
+    assert freeze_constant_terms(model, theta, xdot, weights, inputs, 0.5 * misfit,
+                                 torch.tensor([True])) == [(0, 1)]
+    model, theta, xdot, inputs, _ = _varying_problem()
+    assert freeze_constant_terms(model, theta, xdot, weights, inputs, 2.0 * misfit,
+                                 torch.tensor([True])) == [(0, 1), (0, 0)]
+    model, theta, xdot, inputs, _ = _varying_problem()
+    assert freeze_constant_terms(model, theta, xdot, weights, inputs, 1e6,
+                                 torch.tensor([False])) == []
+    assert model.time_varying.tolist() == [[1.0, 1.0, 1.0]]
+
+
+def _absorbing_problem(beta):
+    """Columns a > 0 and b; the model has only a, with the varying coefficient
+    c(t) = 2 + beta b / a + 0.1 sin(0.2 t): b's role absorbed into a's variation."""
+    t = np.linspace(0, 20, 2000)
+    a, b = 1.0 + 0.5 * np.sin(t), np.cos(1.3 * t)
+    theta = torch.as_tensor(np.stack([a, b], axis=1)[None], dtype=torch.float32)
+    varying = np.stack([beta * b / a + 0.1 * np.sin(0.2 * t), 0 * t], axis=1)
+    xdot = (2.0 + varying[:, 0]) * a
+    model = CoefficientModel(_Given(torch.as_tensor(varying[None], dtype=torch.float32)),
+                             torch.tensor([[2.0, 0.0]]), torch.tensor([[True, False]]),
+                             torch.tensor([[1.0, 0.0]]))
+    return (model, theta, torch.as_tensor(xdot[None, :, None], dtype=torch.float32),
+            torch.zeros(1, 2, 2000))
+
+
+def test_term_absorbed_into_a_varying_coefficient_is_restored():
+    """b's role hidden in a's varying coefficient comes back as a constant with the
+    least-squares coefficient of the contribution on [a, b] (1e-4; within 5% of the
+    true -0.5: the drift of c is not orthogonal to b); a keeps varying."""
+    model, theta, xdot, inputs = _absorbing_problem(-0.5)
+    weights = torch.ones_like(xdot)
+    restored = restore_absorbed_terms(model, theta, xdot, weights, inputs, 0.05,
+                                      torch.tensor([True]))
+    assert restored == [(0, 1)]
+    assert model.support.tolist() == [[True, True]]
+    assert model.time_varying.tolist() == [[1.0, 0.0]]
+    contribution = theta[0, :, 0] * (2.0 + model.generator.series[0, :, 0])
+    expected = np.linalg.lstsq(theta[0].double().numpy(), contribution.double().numpy(),
+                               rcond=None)[0][1]
+    found = float(model.constants[0, 1].detach())
+    assert abs(found / expected - 1) < 1e-4
+    assert abs(found / -0.5 - 1) < 0.05
+
+
+def test_variation_unrelated_to_pruned_terms_is_left_alone():
+    """A varying coefficient that is not a pruned column in disguise (a hidden state)
+    restores nothing; neither does a fixed row."""
+    model, theta, xdot, inputs = _absorbing_problem(0.0)
+    weights = torch.ones_like(xdot)
+    assert restore_absorbed_terms(model, theta, xdot, weights, inputs, 0.05,
+                                  torch.tensor([True])) == []
+    model, theta, xdot, inputs = _absorbing_problem(-0.5)
+    assert restore_absorbed_terms(model, theta, xdot, weights, inputs, 0.05,
+                                  torch.tensor([False])) == []
+    assert model.support.tolist() == [[True, False]]
