@@ -11,6 +11,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 from . import celegans, systems
 from ._cli.batch import Run, discover_many
+from ._core.recordings import DataUse
 from ._core.simulate import Simulation
 from ._files.load import load  # also registers the file formats with _core.saving
 from ._stage_one.coefficients import CoefficientSeries
@@ -44,6 +45,7 @@ __all__ = [
     "Term",
     "Alternative",
     "Refinement",
+    "DataUse",
     "CoefficientSeries",
     "Simulation",
     "TrainingOptions",

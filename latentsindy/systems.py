@@ -131,7 +131,15 @@ def _finish(t, x, x_dot, names, series, terms, noise, rng) -> SystemData:
     return SystemData(t, x_noisy, x, x_dot, tuple(names), series, terms)
 
 
-def _time_grid(t_end, n_times):
+def _time_grid(t_end, n_times, t=None):
+    """``n_times`` equally spaced times from 0 to ``t_end``, or the given sample times."""
+    if t is not None:
+        arr = np.array(t, dtype=float)
+        if arr.ndim != 1 or len(arr) < 2 or not np.all(np.isfinite(arr)) \
+                or np.any(np.diff(arr) <= 0):
+            raise ValueError("t must be a 1-D array of at least 2 finite, strictly "
+                             f"increasing sample times; got shape {arr.shape}.")
+        return arr
     if n_times < 2:
         raise ValueError(f"n_times must be at least 2; got {n_times}.")
     return np.linspace(0.0, t_end, n_times)
@@ -143,6 +151,7 @@ def harmonic_oscillator(
     *,
     t_end: float = 10.0,
     n_times: int = 1000,
+    t: Sequence[float] | None = None,
     x0: Sequence[float] = (1.0, 0.0),
     noise: float = 0.0,
     coefficient_noise: float = 0.0,
@@ -151,10 +160,12 @@ def harmonic_oscillator(
     """Non-autonomous oscillator ``xdot = A(t) y``, ``ydot = B(t) x``.
 
     ``noise`` is measurement noise as a fraction of each state's standard deviation;
-    ``coefficient_noise`` is an absolute standard deviation added to A and B.
+    ``coefficient_noise`` is an absolute standard deviation added to A and B. Every
+    system samples ``n_times`` equally spaced times from 0 to ``t_end``, or the sample
+    times ``t`` when given (irregular sampling; the integration starts at ``t[0]``).
     """
     rng = np.random.default_rng(seed)
-    t = _time_grid(t_end, n_times)
+    t = _time_grid(t_end, n_times, t)
     params = {"A": _as_function(A, "A"), "B": _as_function(B, "B")}
 
     def rhs(s, p):
@@ -172,6 +183,7 @@ def lorenz(
     *,
     t_end: float = 20.0,
     n_times: int = 2000,
+    t: Sequence[float] | None = None,
     x0: Sequence[float] = (-8.0, 7.0, 27.0),
     noise: float = 0.0,
     coefficient_noise: float = 0.0,
@@ -179,7 +191,7 @@ def lorenz(
 ) -> SystemData:
     """Lorenz system with any of sigma, rho, beta varying in time."""
     rng = np.random.default_rng(seed)
-    t = _time_grid(t_end, n_times)
+    t = _time_grid(t_end, n_times, t)
     params = {
         "sigma": _as_function(sigma, "sigma"),
         "rho": _as_function(rho, "rho"),
@@ -212,6 +224,7 @@ def lotka_volterra(
     *,
     t_end: float = 20.0,
     n_times: int = 2000,
+    t: Sequence[float] | None = None,
     x0: Sequence[float] = (10.0, 5.0),
     noise: float = 0.0,
     coefficient_noise: float = 0.0,
@@ -219,7 +232,7 @@ def lotka_volterra(
 ) -> SystemData:
     """Predator-prey ``xdot = alpha x - beta x y``, ``ydot = -gamma y + delta x y``."""
     rng = np.random.default_rng(seed)
-    t = _time_grid(t_end, n_times)
+    t = _time_grid(t_end, n_times, t)
     params = {
         "alpha": _as_function(alpha, "alpha"),
         "beta": _as_function(beta, "beta"),
@@ -249,6 +262,7 @@ def fitzhugh_nagumo(
     *,
     t_end: float = 150.0,
     n_times: int = 2000,
+    t: Sequence[float] | None = None,
     x0: Sequence[float] = (-1.0, 1.0),
     noise: float = 0.0,
     seed: int = 0,
@@ -260,7 +274,7 @@ def fitzhugh_nagumo(
     coupled to v: with only v observed, ``current - w`` is a hidden additive input.
     """
     rng = np.random.default_rng(seed)
-    t = _time_grid(t_end, n_times)
+    t = _time_grid(t_end, n_times, t)
 
     def rhs(s, p):
         v, w = s
@@ -283,6 +297,7 @@ def modulated_oscillator(
     *,
     t_end: float = 40.0,
     n_times: int = 2000,
+    t: Sequence[float] | None = None,
     x0: Sequence[float] = (1.0, 0.0, 0.6),
     noise: float = 0.0,
     seed: int = 0,
@@ -295,7 +310,7 @@ def modulated_oscillator(
     are affine images of one another); the amplitude swells and fades periodically.
     """
     rng = np.random.default_rng(seed)
-    t = _time_grid(t_end, n_times)
+    t = _time_grid(t_end, n_times, t)
 
     def rhs(s, p):
         x, y, z = s

@@ -4,7 +4,9 @@ The default, :class:`AdaptiveSavitzkyGolay`, estimates each state's noise level 
 high-order differences and picks, per state, the widest Savitzky-Golay window whose
 residual stays within that noise level (Morozov's discrepancy principle). On clean
 data this falls back to a short window (high accuracy); on noisy data the window
-grows with the noise. Any pysindy differentiation object can be passed instead.
+grows with the noise. Irregular sample times get the same fits on their actual times
+(:mod:`.local_fits`), never a grid they do not have. Any pysindy differentiation
+object can be passed instead.
 """
 
 from __future__ import annotations
@@ -13,31 +15,52 @@ import numpy as np
 import pysindy as ps
 from scipy.signal import savgol_coeffs, savgol_filter
 
-_POLYORDER = 3
+from . import local_fits
+from .local_fits import ORDER as _POLYORDER
 
 
-def noise_level(x: np.ndarray) -> np.ndarray:
-    """Robust per-column noise standard deviation from 4th differences (MAD)."""
+def noise_level(x: np.ndarray, t=None) -> np.ndarray:
+    """Robust per-column noise standard deviation (MAD) of white measurement noise.
+
+    On a uniform grid (or without ``t``) from 4th differences; on irregular times from
+    each sample's residual against the cubic through its neighbours, scaled by that
+    prediction's own noise gain (the same statistic, for any spacing)."""
+    if t is not None and not local_fits.is_uniform(t):
+        d = local_fits.neighbour_residuals(x, t)
+        return 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0)
     d = np.diff(x, n=4, axis=0)
     mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
     return 1.4826 * mad / np.sqrt(70.0)  # var of 4th difference of white noise = 70 sigma^2
 
 
-def choose_window(x: np.ndarray, max_window: int | None = None) -> int:
-    """Widest odd window whose smoothing residual stays within the noise level."""
+def _max_window(n, max_window):
+    return max_window or max(7, min(n // 5, 301))
+
+
+def _next_window(w):
+    return w + 2 if w < 21 else int(w * 1.2) | 1
+
+
+def choose_window(x: np.ndarray, max_window: int | None = None, t=None) -> int:
+    """Widest odd window whose smoothing residual stays within the noise level (fits
+    on the actual times when ``t`` is irregular)."""
     n = x.shape[0]
-    max_window = max_window or max(7, min(n // 5, 301))
-    sigma = float(noise_level(x[:, None])[0])
+    max_window = _max_window(n, max_window)
+    irregular = t is not None and not local_fits.is_uniform(t)
+    sigma = float(noise_level(x[:, None], t)[0])
     best = _POLYORDER + 2
     if sigma <= 1e-12 * max(1.0, float(np.std(x))):
         return best
     w = best
-    while w <= max_window:
-        resid = x - savgol_filter(x, w, _POLYORDER)
-        if np.sqrt(np.mean(resid**2)) > sigma:
+    while w <= min(max_window, n - (1 - n % 2)):
+        if irregular:
+            smooth = local_fits.fit(x[:, None], t, w, 0)[0][:, 0]
+        else:
+            smooth = savgol_filter(x, w, _POLYORDER)
+        if np.sqrt(np.mean((x - smooth) ** 2)) > sigma:
             break
         best = w
-        w = w + 2 if w < 21 else int(w * 1.2) | 1
+        w = _next_window(w)
     return best
 
 
@@ -45,7 +68,7 @@ def _savgol_derivative(x, window, dt):
     """Savitzky-Golay derivative along axis 0; within half a window of either end a
     half-width window is used, which cuts the polynomial-extrapolation bias there."""
     out = savgol_filter(x, window, _POLYORDER, deriv=1, delta=dt, axis=0, mode="interp")
-    edge = max(_POLYORDER + 2, (window // 2) | 1)
+    edge = _edge_window(window)
     if edge < window and x.shape[0] >= window:
         half = window // 2
         head = savgol_filter(x[:window], edge, _POLYORDER, deriv=1, delta=dt, axis=0,
@@ -55,6 +78,10 @@ def _savgol_derivative(x, window, dt):
         out[:half] = head[:half]
         out[-half:] = tail[-half:]
     return out
+
+
+def _edge_window(window):
+    return max(_POLYORDER + 2, (window // 2) | 1)
 
 
 def _edge_profile(n, window, dt):
@@ -73,6 +100,11 @@ def _edge_profile(n, window, dt):
 class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
     """Savitzky-Golay derivative with a per-state window chosen from the noise level.
 
+    On irregular sample times the same local cubic fits are made on the actual times
+    (each window its own least-squares fit), the noise level comes from residuals
+    that do not assume a grid, and each sample's derivative carries its own noise gain
+    (larger where samples are sparse), which weights the likelihood downstream.
+
     Parameters
     ----------
     max_window : int, optional
@@ -85,6 +117,10 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
     >>> d = AdaptiveSavitzkyGolay()(np.sin(t)[:, None], t)
     >>> bool(np.max(np.abs(d[:, 0] - np.cos(t))) < 1e-4)
     True
+    >>> t = np.sort(np.random.default_rng(0).uniform(0, 2 * np.pi, 400))
+    >>> d = AdaptiveSavitzkyGolay()(np.sin(t)[:, None], t)
+    >>> bool(np.max(np.abs(d[:, 0] - np.cos(t))) < 1e-3)
+    True
     """
 
     def __init__(self, max_window: int | None = None):
@@ -96,26 +132,41 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
             steps = np.full(x.shape[0] - 1, float(t))
         else:
             steps = np.diff(np.asarray(t, dtype=float))
-        uniform = np.allclose(steps, steps.mean(), rtol=1e-6, atol=0)
+        if not np.allclose(steps, steps.mean(), rtol=1e-6, atol=0):
+            return self._irregular(x, np.concatenate([[0.0], np.cumsum(steps)]))
         self.windows_ = [choose_window(x[:, j], self.max_window) for j in range(x.shape[1])]
         smooth = np.empty_like(x)
         out = np.empty_like(x)
+        dt = float(steps.mean())
         for j, w in enumerate(self.windows_):
             w = min(w, x.shape[0] - (1 - x.shape[0] % 2))
             smooth[:, j] = savgol_filter(x[:, j], w, _POLYORDER, mode="interp")
-            if uniform:
-                out[:, j] = _savgol_derivative(x[:, j], w, float(steps.mean()))
-        if not uniform:  # savgol assumes uniform spacing; difference the smoothed series
-            tt = np.concatenate([[0.0], np.cumsum(steps)])
-            out = np.gradient(smooth, tt, axis=0, edge_order=2)
+            out[:, j] = _savgol_derivative(x[:, j], w, dt)
         self.smoothed_x_ = smooth
-        dt = float(steps.mean())
         self.noise_gain_ = np.array([np.sum(savgol_coeffs(w, _POLYORDER, deriv=1, delta=dt) ** 2)
                                      for w in self.windows_])
         self.noise_profile_ = np.ones_like(x)
-        if uniform:
-            for j, w in enumerate(self.windows_):
-                self.noise_profile_[:, j] = _edge_profile(x.shape[0], w, dt) / self.noise_gain_[j]
+        for j, w in enumerate(self.windows_):
+            self.noise_profile_[:, j] = _edge_profile(x.shape[0], w, dt) / self.noise_gain_[j]
+        return out
+
+    def _irregular(self, x, t):
+        """Local cubic fits on the actual times: windows by the discrepancy principle,
+        half-width windows within half a window of the ends (as on a grid)."""
+        self.windows_ = [choose_window(x[:, j], self.max_window, t) for j in range(x.shape[1])]
+        smooth = np.empty_like(x)
+        out = np.empty_like(x)
+        gains = np.empty_like(x)
+        for j, w in enumerate(self.windows_):
+            w = min(w, x.shape[0] - (1 - x.shape[0] % 2))
+            smooth[:, j] = local_fits.fit(x[:, j:j + 1], t, w, 0)[0][:, 0]
+            deriv, gains[:, j] = local_fits.fit(x[:, j:j + 1], t, w, 1, _edge_window(w))
+            out[:, j] = deriv[:, 0]
+        self.smoothed_x_ = smooth
+        # the typical (median) gain plays the role of the grid's interior gain; each
+        # sample's own gain relative to it is its noise profile
+        self.noise_gain_ = np.median(gains, axis=0)
+        self.noise_profile_ = gains / self.noise_gain_
         return out
 
 
@@ -126,11 +177,12 @@ def default_differentiation():
 def derivative_noise_std(method, x, t, x_dot):
     """Standard deviation of the noise that ``method`` passes into each derivative.
 
-    The states' noise level comes from high-order differences; the method's gain on
-    white noise from its own coefficients (the default) or, for any other method, from
-    its response to a small white-noise perturbation (exact for linear methods).
+    The states' noise level comes from high-order differences (on the actual times);
+    the method's gain on white noise from its own coefficients (the default) or, for
+    any other method, from its response to a small white-noise perturbation (exact for
+    linear methods).
     """
-    sigma = noise_level(x)
+    sigma = noise_level(x, t if np.ndim(t) else None)
     gain = getattr(method, "noise_gain_", None)
     if gain is None or len(gain) != x.shape[1]:
         eps = 1e-3 * np.maximum(x.std(axis=0), 1e-12)

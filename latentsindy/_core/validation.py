@@ -9,14 +9,26 @@ import numpy as np
 MIN_TIMES = 16  # shorter series cannot support a derivative estimate plus a time-varying fit
 
 
-def _as_2d(x, what: str) -> np.ndarray:
-    try:
-        arr = np.asarray(x, dtype=float)
-    except (TypeError, ValueError) as err:
-        raise TypeError(
-            f"{what} must be a numeric array of shape (n_times, n_states); "
-            f"got {type(x).__name__} that cannot be converted ({err})."
-        ) from None
+_KINDS = {"b": "boolean", "c": "complex", "O": "object", "U": "string", "S": "bytes",
+          "M": "datetime", "m": "timedelta", "V": "structured"}
+
+
+def numeric_2d(x, what: str) -> np.ndarray:
+    """A real float array of shape (n_times, n_states); NaN allowed (checked by callers)."""
+    raw = x if isinstance(x, np.ndarray) else None
+    if raw is None:
+        try:
+            raw = np.asarray(x)
+        except (TypeError, ValueError) as err:
+            raise TypeError(f"{what} must be a numeric array of shape (n_times, n_states); got "
+                            f"{type(x).__name__} that cannot be converted ({err}).") from None
+    if raw.dtype.kind in _KINDS:
+        hint = ("take the real part or the modulus yourself (np.real, np.abs)"
+                if raw.dtype.kind == "c" else "convert it to floats (e.g. x.astype(float))")
+        raise TypeError(f"{what} must hold real numbers (float or int); got a "
+                        f"{_KINDS[raw.dtype.kind]} array (dtype {raw.dtype}) of shape "
+                        f"{raw.shape}: {hint}.")
+    arr = np.asarray(raw, dtype=float)
     if arr.ndim == 1:
         arr = arr[:, None]
     if arr.ndim != 2:
@@ -24,11 +36,21 @@ def _as_2d(x, what: str) -> np.ndarray:
             f"{what} must have shape (n_times, n_states); got shape {arr.shape}. "
             "Pass several trajectories as a list of 2-D arrays, not a stacked 3-D array."
         )
+    if arr.shape[0] < 2 or arr.shape[1] == 0:
+        raise ValueError(f"{what} must hold a time series of shape (n_times, n_states); got "
+                         f"shape {arr.shape}: at least {MIN_TIMES} samples of at least one "
+                         "state are needed (hundreds are better).")
+    return arr
+
+
+def _as_2d(x, what: str) -> np.ndarray:
+    arr = numeric_2d(x, what)
     if not np.all(np.isfinite(arr)):
         bad = int(np.sum(~np.isfinite(arr)))
         raise ValueError(
             f"{what} contains {bad} NaN or infinite value(s) (first at row "
-            f"{int(np.argwhere(~np.isfinite(arr))[0, 0])}); remove or interpolate them first."
+            f"{int(np.argwhere(~np.isfinite(arr))[0, 0])}); remove or interpolate them first "
+            "(discover_hidden splits a recording at its gaps itself)."
         )
     return arr
 
@@ -75,7 +97,7 @@ def as_times(t, trajectories: Sequence[np.ndarray]) -> list[np.ndarray]:
     return [_one_times(t, tr.shape[0], "t") for tr in trajectories]
 
 
-def _one_times(t, n_times: int, what: str) -> np.ndarray:
+def _one_times(t, n_times: int, what: str, missing=None) -> np.ndarray:
     if t is None:
         raise TypeError(f"{what} is required: a sample spacing (float) or an array of times.")
     if np.ndim(t) == 0:
@@ -83,7 +105,12 @@ def _one_times(t, n_times: int, what: str) -> np.ndarray:
         if not np.isfinite(dt) or dt <= 0:
             raise ValueError(f"The sample spacing {what} must be a positive number; got {t!r}.")
         return np.arange(n_times) * dt
-    arr = np.array(t, dtype=float, copy=True)
+    raw = np.asarray(t)
+    if raw.dtype.kind in _KINDS:
+        raise TypeError(f"{what} must hold real sample times (float or int); got a "
+                        f"{_KINDS[raw.dtype.kind]} array (dtype {raw.dtype}); convert "
+                        "datetimes to seconds (or any unit) first.")
+    arr = np.array(raw, dtype=float, copy=True)
     if arr.ndim != 1:
         raise ValueError(f"{what} must be 1-D; got shape {arr.shape}.")
     if arr.shape[0] != n_times:
@@ -91,14 +118,18 @@ def _one_times(t, n_times: int, what: str) -> np.ndarray:
             f"Length mismatch: {what} has {arr.shape[0]} times but x has {n_times} rows; "
             "they must match."
         )
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{what} contains NaN or infinite times.")
-    steps = np.diff(arr)
+    keep = np.ones(n_times, dtype=bool) if missing is None else ~missing
+    if not np.all(np.isfinite(arr[keep])):
+        raise ValueError(f"{what} contains NaN or infinite times; give every sample a time.")
+    rows = np.flatnonzero(keep)
+    steps = np.diff(arr[rows])
     if np.any(steps <= 0):
         k = int(np.argmax(steps <= 0))
+        a, b = rows[k], rows[k + 1]
         raise ValueError(
-            f"{what} must be strictly increasing; t[{k}]={arr[k]!r} is followed by "
-            f"t[{k + 1}]={arr[k + 1]!r}. Sort the samples or drop duplicates."
+            f"{what} must be strictly increasing; {what}[{a}]={arr[a]!r} is followed by "
+            f"{what}[{b}]={arr[b]!r}. Sort the samples (with their rows of x) or drop "
+            "duplicate times."
         )
     return arr
 

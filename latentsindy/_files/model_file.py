@@ -18,7 +18,7 @@ import torch
 
 from .._core import saving
 from .._core.library import fit_library
-from .._stage_one.estimator import DynamicSINDy
+from .._stage_one.estimator import DynamicSINDy, sample_positions
 from .._stage_one.sequential_model import SequentialCoefficientModel
 from .._stage_one.training import CoefficientModel
 from ..generators import build_generator, generator_class
@@ -101,8 +101,7 @@ def read_model(meta, arrays) -> DynamicSINDy:
     torch.manual_seed(0)  # construction draws initial weights, all overwritten below
     gen = build_generator(est.generator, inputs.shape[1], support.numel(),
                           est.generator_options)
-    if sequential:
-        gen.allocate(inputs.shape[2])
+    gen.allocate(inputs.shape[2], sample_positions(arrays["times"], "cpu"))
     cls = SequentialCoefficientModel if sequential else CoefficientModel
     model = cls(gen, torch.zeros(support.shape), support, weights["time_varying"])
     model.load_state_dict(weights, strict=True)

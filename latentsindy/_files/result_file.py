@@ -14,14 +14,15 @@ import numpy as np
 import sympy as sp
 
 from .._core import saving
+from .._core.recordings import DataUse
 from .._stage_one.coefficients import CoefficientSeries
 from .._stage_two.result import Alternative, HiddenDiscovery, HiddenState, Refinement, Term
 from .container import Refused, write
 from .expressions import from_tree, number, to_tree
 
 FORMAT = "latentsindy.HiddenDiscovery"
-VERSION = 3  # 3 added ``doubts``; version 2 files still load (no doubts)
-READABLE = (2, 3)
+VERSION = 4  # 3 added ``doubts``, 4 ``data_use``; versions 2 and 3 still load
+READABLE = (2, 3, 4)
 
 
 def _hidden_state(h):
@@ -51,6 +52,11 @@ def save_result(result: HiddenDiscovery, path) -> None:
         "stage_one_states": list(result.coefficients.state_names),
         "stage_one_features": list(result.coefficients.feature_names),
         "n_trajectories": len(result.all_times),
+        "data_use": None if result.data_use is None else {
+            "recordings": result.data_use.recordings, "segments": result.data_use.segments,
+            "samples": result.data_use.samples, "missing_rows": result.data_use.missing_rows,
+            "dropped": list(result.data_use.dropped),
+            "sources": [list(s) for s in result.data_use.sources]},
     }
     arrays = {"hidden_std": result.hidden_std,
               "initial_state": np.asarray(result.initial_state, dtype=float)}
@@ -59,8 +65,8 @@ def save_result(result: HiddenDiscovery, path) -> None:
                    f"hidden_{k}": result.all_hidden[k],
                    f"hidden_initial_{k}": result.hidden_initial[k]}
     c = result.coefficients
-    arrays |= {"coef_mean": c.mean, "coef_samples": c.samples, "coef_support": c.support,
-               "coef_time_varying": c.time_varying}
+    arrays |= {"coef_times": c.times, "coef_mean": c.mean, "coef_samples": c.samples,
+               "coef_support": c.support, "coef_time_varying": c.time_varying}
     write(path, json.dumps(meta), arrays)
 
 
@@ -107,8 +113,9 @@ def read_result(meta, arrays) -> HiddenDiscovery:
     observed_series = [arrays[f"observed_{k}"] for k in range(n)]
     hidden_series = [arrays[f"hidden_{k}"] for k in range(n)]
     initial = [arrays[f"hidden_initial_{k}"] for k in range(n)]
+    coef_times = arrays["coef_times"] if meta["version"] >= 4 else times[0]
     coefs = CoefficientSeries.from_samples(
-        times[0], arrays["coef_mean"], arrays["coef_samples"],
+        coef_times, arrays["coef_mean"], arrays["coef_samples"],
         _names(meta["stage_one_states"], "stage_one_states"),
         [str(f) for f in meta["stage_one_features"]], arrays["coef_support"],
         arrays["coef_time_varying"])
@@ -123,7 +130,16 @@ def read_result(meta, arrays) -> HiddenDiscovery:
             "misfit_before", "misfit_after", "continuity_gap", "n_segments", "iterations",
             "status")}),
         tuple(str(s) for s in meta["notes"]), times, observed_series, hidden_series, initial,
-        arrays["initial_state"], _doubts(meta))
+        arrays["initial_state"], _doubts(meta), _data_use(meta))
+
+
+def _data_use(meta):
+    d = meta.get("data_use") if meta["version"] >= 4 else None
+    if d is None:
+        return None
+    return DataUse(int(d["recordings"]), int(d["segments"]), int(d["samples"]),
+                   int(d["missing_rows"]), tuple(str(s) for s in d["dropped"]),
+                   tuple(tuple(int(v) for v in s) for s in d["sources"]))
 
 
 def _doubts(meta):

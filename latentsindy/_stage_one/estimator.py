@@ -13,6 +13,7 @@ from .._core import saving
 from .._core import validation as val
 from .._core.derivatives import differentiate, noise_level
 from .._core.library import check_library, fit_library
+from .._core.local_fits import positions as time_positions
 from ..generators import build_generator, generator_class
 from .coefficients import CoefficientSeries
 from .sequential import (
@@ -144,7 +145,8 @@ class DynamicSINDy:
             if [d.shape for d in xdots] != [tr.shape for tr in trajs]:
                 raise ValueError(f"x_dot shapes {[d.shape for d in xdots]} must match x shapes "
                                  f"{[tr.shape for tr in trajs]}.")
-            noise_std = np.mean([noise_level(d) for d in xdots], axis=0)
+            noise_std = np.mean([noise_level(d, tk) for d, tk in zip(xdots, times, strict=True)],
+                                axis=0)
             weights = [np.ones_like(d) for d in xdots]
         library = check_library(self.library)
         thetas, feature_list = fit_library(library, trajs, names)
@@ -175,8 +177,8 @@ class DynamicSINDy:
             gen = build_generator(self.generator, inputs.shape[1], support.size,
                                   self.generator_options)
             support_t = torch.as_tensor(support, device=dev)
+            gen.allocate(theta.shape[1], sample_positions(times[0], dev))
             if sequential:
-                gen.allocate(theta.shape[1])
                 constants = windowed_constants(theta_n, xdot_n, support_t, options.window)
                 model_cls, fit_fn = SequentialCoefficientModel, train_sequential
             else:
@@ -298,6 +300,13 @@ def _seeded(seed, device):
     with torch.random.fork_rng(devices=devices):
         torch.manual_seed(seed)
         yield
+
+
+def sample_positions(times, device):
+    """The generators' time axis: sample times in mean steps (float32 tensor), or None
+    on a uniform grid."""
+    pos = time_positions(times)
+    return None if pos is None else torch.as_tensor(pos, dtype=torch.float32, device=device)
 
 
 def _encoder_inputs(x, xdot):

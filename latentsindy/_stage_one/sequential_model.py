@@ -74,12 +74,13 @@ class SequentialCoefficientModel(CoefficientModel):
     def mean_blocks(self, inputs, block: int = 100_000):
         """Yield (start, stop, Xi): mean per-step coefficients, ``block`` steps at a time."""
         chunk, n_times = self.generator.chunk, inputs.shape[-1]
+        positions = self.generator.positions
         xi, _ = self.chunk_series(inputs, 0, self.generator.window_len)
         values = xi.flatten(2)
-        centres = chunk_centres(0, n_times, chunk, values.dtype, values.device)
+        centres = chunk_centres(0, n_times, chunk, values.dtype, values.device, positions)
         for lo in range(0, n_times, block):
             hi = min(lo + block, n_times)
-            steps = torch.arange(lo, hi, dtype=values.dtype, device=values.device)
+            steps = _steps(lo, hi, positions, values)
             yield lo, hi, interpolate_at(values, centres, steps)[0].reshape(hi - lo,
                                                                             *xi.shape[2:])
 
@@ -98,7 +99,8 @@ class SequentialCoefficientModel(CoefficientModel):
         chunk, window = self.generator.chunk, self.generator.window_len
         xi, kl = self.chunk_series(inputs, n_samples, window)
         shape = xi.shape
-        per_step = interpolate_chunks(xi.flatten(2), inputs.shape[-1], chunk)
+        per_step = interpolate_chunks(xi.flatten(2), inputs.shape[-1], chunk,
+                                      self.generator.positions)
         return per_step.reshape(shape[0], -1, *shape[2:]), kl
 
 
@@ -135,16 +137,20 @@ def window_loss(model, theta, xdot, weights, inputs, noise_var, state, previous,
     training sees exactly the coefficients that the whole-series read-out interpolates.
     """
     chunk, n_times = model.generator.chunk, theta.shape[1]
+    positions = model.generator.positions
     xi_c, kl, state = model.window(inputs[..., start:stop], 1, state, stochastic=stochastic,
                                    start=start)
-    centres = chunk_centres(start, stop, chunk, theta.dtype, theta.device)
+    centres = chunk_centres(start, stop, chunk, theta.dtype, theta.device, positions)
     values = xi_c.flatten(2)
     if previous is not None:
-        centres = torch.cat([centres.new_tensor([start - (chunk + 1) / 2]), centres])
+        before = chunk_centres(start - chunk, start, chunk, theta.dtype, theta.device,
+                               positions)
+        centres = torch.cat([before, centres])
         values = torch.cat([previous.flatten(2), values], dim=1)
-    lo = int(math.floor(float(centres[0]))) + 1 if previous is not None else start
-    hi = int(math.floor(float(centres[-1]))) + 1 if stop < n_times else n_times
-    steps = torch.arange(lo, hi, dtype=theta.dtype, device=theta.device)
+    # the steps from the previous chunk centre (exclusive) to the last one (inclusive)
+    lo = _first_after(centres[0], positions) if previous is not None else start
+    hi = _first_after(centres[-1], positions) if stop < n_times else n_times
+    steps = _steps(lo, hi, positions, theta)
     xi = interpolate_at(values, centres, steps).reshape(xi_c.shape[0], hi - lo,
                                                         *xi_c.shape[2:])
     xdot_w = xdot[:, lo:hi]
@@ -155,7 +161,8 @@ def window_loss(model, theta, xdot, weights, inputs, noise_var, state, previous,
     n_active = active.sum().clamp_min(1.0)
     track = xi_c if previous is None else torch.cat([previous, xi_c], dim=1)
     # slope changes of the chunk track, per time step of the window
-    per_term = roughness(track) * (track.shape[1] - 2) / max(hi - lo, 1)
+    spacing = None if positions is None else torch.diff(centres)
+    per_term = roughness(track, spacing) * (track.shape[1] - 2) / max(hi - lo, 1)
     size = model.last_size  # mean |Xi| in this window, with the gates' expected values
     scale = n_active * torch.clamp((size * active).sum() / n_active, min=floor).detach()
     rough = (per_term * active).sum() / scale
@@ -163,6 +170,20 @@ def window_loss(model, theta, xdot, weights, inputs, noise_var, state, previous,
     rough_shared = (per_term * shared).sum() / scale
     return {"mse": mse, "kl": kl, "rough": rough, "rough_shared": rough_shared,
             "rough_lone": rough - rough_shared, "size": size}, xi_c, state
+
+
+def _steps(lo, hi, positions, like):
+    """Time coordinates of steps [lo, hi): the step indices, or their positions."""
+    if positions is None:
+        return torch.arange(lo, hi, dtype=like.dtype, device=like.device)
+    return positions[lo:hi].to(like.dtype)
+
+
+def _first_after(centre, positions):
+    """Index of the first step after time ``centre`` (in steps, or in positions)."""
+    if positions is None:
+        return int(math.floor(float(centre))) + 1
+    return int(torch.searchsorted(positions, centre, right=True))
 
 
 def shared_variation(model) -> torch.Tensor:

@@ -187,7 +187,7 @@ def loss_terms(model, theta, xdot, weights, inputs, noise_var, threshold, free_r
     active = model.support.to(xi.dtype)
     n_active = active.sum().clamp_min(1.0)
     size = xi.abs().mean(dim=(0, 1)) * active  # mean |Xi| over time, per term
-    rough = (roughness(xi) * active).sum() / n_active
+    rough = (roughness(xi, model.generator.spacing) * active).sum() / n_active
     mean_abs = size.sum() / n_active
     # relative to the coefficients' size, but never to less than the pruning
     # threshold: a coefficient that averages about zero must still be free to vary
@@ -202,7 +202,7 @@ def loss_terms(model, theta, xdot, weights, inputs, noise_var, threshold, free_r
             "rough_bayes": min(1.0, max(0.01, float(bayes)))}
 
 
-def roughness(track: torch.Tensor) -> torch.Tensor:
+def roughness(track: torch.Tensor, spacing: torch.Tensor | None = None) -> torch.Tensor:
     """Smoothness penalty of both generators, per trailing entry: half the mean absolute
     second difference along time (dim 1) plus ``TV_SHARE`` of the mean absolute first
     difference (total variation).
@@ -215,12 +215,25 @@ def roughness(track: torch.Tensor) -> torch.Tensor:
     total variation stays: minima now within 0.033, the other bars unchanged. A jump
     costs 1.5 times what total variation alone charged; sample-to-sample noise is
     penalised as before.
+
+    ``spacing`` (len - 1,) are the times between consecutive points of the track (None:
+    equal). Then the second differences are divided differences in units of the mean
+    spacing, each weighted by the time it stands for: a prior per unit time, not per
+    sample (equal spacing gives the plain differences). Total variation needs no
+    change: it is the same whatever the sampling.
     """
     if track.shape[1] < 3:
         return track.new_zeros(track.shape[2:])
-    second = track[:, 2:] - 2 * track[:, 1:-1] + track[:, :-2]
     first = track[:, 1:] - track[:, :-1]
-    return 0.5 * second.abs().mean(dim=(0, 1)) + TV_SHARE * first.abs().mean(dim=(0, 1))
+    if spacing is None:
+        second = (track[:, 2:] - 2 * track[:, 1:-1] + track[:, :-2]).abs()
+    else:
+        h = (spacing / spacing.mean()).to(track.dtype)
+        h = h.reshape(1, -1, *([1] * (track.dim() - 2)))
+        slope = first / h
+        width = h[:, 1:] + h[:, :-1]
+        second = (2 * (slope[:, 1:] - slope[:, :-1]) / width).abs() * (width / 2)
+    return 0.5 * second.mean(dim=(0, 1)) + TV_SHARE * first.abs().mean(dim=(0, 1))
 
 
 def _cosine(step, total, lr0, lr_min):

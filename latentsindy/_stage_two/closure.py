@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._core.local_fits import is_uniform
+
 N_FOLDS = 5
 TOLERANCE = 0.05  # a sparser model is accepted within max(1 standard error, 5%) of the best
 N_THRESHOLDS = 30
@@ -95,7 +97,8 @@ def fit_rate_closure(base, rate, observed, times, library, names, span) -> Closu
     """Closure of a rate state g = d base/dt: ``dg/dt = f(g, base, observed)``, fitted on
     the base series itself in second-order weak form: ``b(t+s) - 2 b(t) + b(t-s)``
     against the library integrated with the triangular kernel ``s - |tau|`` (exact for
-    any smooth b), so no second derivative is taken. ``s`` is twice ``span``."""
+    any smooth b), so no second derivative is taken. ``s`` is twice ``span`` samples.
+    On irregular times the same identity holds for unequal sides (:func:`_hat_rows`)."""
     base = [np.asarray(b, dtype=float) for b in base]
     states = [np.hstack([g, b, u]) for g, b, u in zip(rate, base, observed, strict=True)]
     lib = copy.deepcopy(library)
@@ -105,6 +108,11 @@ def fit_rate_closure(base, rate, observed, times, library, names, span) -> Closu
     half = max(1, min(2 * int(span), min(len(b) for b in base) // 8))
     rows, targets = [], []
     for th, b, t in zip(thetas, base, times, strict=True):
+        if np.ndim(t) and not is_uniform(t):
+            row, target = _hat_rows(th, b, np.asarray(t, dtype=float), half)
+            rows.append(row)
+            targets.append(target)
+            continue
         dt = float(np.mean(np.diff(np.asarray(t, dtype=float)))) if np.ndim(t) else float(t)
         kernel = (half - np.abs(np.arange(-half, half + 1))) * dt * dt
         rows.append(np.column_stack([np.convolve(col, kernel, mode="valid") for col in th.T]))
@@ -114,6 +122,24 @@ def fit_rate_closure(base, rate, observed, times, library, names, span) -> Closu
     chosen = _one_standard_error(candidates)
     return ClosureFit(chosen[4], feature_names, lib, chosen[2],
                       [(c[0], c[1], c[2]) for c in candidates])
+
+
+def _hat_rows(theta, base, t, half):
+    """Second-order weak form on irregular times: for samples a = k - half, k,
+    c = k + half, ``(b_c - b_k) / (t_c - t_k) - (b_k - b_a) / (t_k - t_a)`` equals the
+    integral of b'' against the hat function that rises from 0 at t_a to 1 at t_k and
+    falls to 0 at t_c (trapezoid rule on the samples in between). Rows are scaled by
+    the half-width (t_c - t_a) / 2, so equal spacing gives the uniform rows."""
+    ks = np.arange(half, len(t) - half)
+    idx = ks[:, None] + np.arange(-half, half + 1)[None, :]
+    tt = t[idx]
+    ta, tk, tc = tt[:, :1], t[ks][:, None], tt[:, -1:]
+    hat = np.where(tt <= tk, (tt - ta) / (tk - ta), (tc - tt) / (tc - tk))
+    f = theta[idx] * hat[..., None]
+    rows = np.sum((f[:, 1:] + f[:, :-1]) / 2 * np.diff(tt, axis=1)[..., None], axis=1)
+    scale = (tc - ta) / 2
+    target = ((base[ks + half] - base[ks]) / (tc - tk) - (base[ks] - base[ks - half]) / (tk - ta))
+    return rows * scale, target * scale
 
 
 def path(theta, target):

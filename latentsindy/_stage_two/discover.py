@@ -15,6 +15,7 @@ import dataclasses
 import numpy as np
 import pysindy as ps
 
+from .._core import recordings
 from .._core import validation as val
 from .._core.derivatives import AdaptiveSavitzkyGolay, noise_level
 from .._core.library import check_library, feature_expressions, fit_library
@@ -29,12 +30,13 @@ from .smoother import Structure
 VARIATION_SIGMAS = 3.0  # variation must exceed this many posterior std ...
 VARIATION_RELATIVE = 0.05  # ... and this fraction of the coefficient's mean size
 THRESHOLD = 0.05  # smallest share of an equation's RMS rate a constant term may explain
+STAGE_ONE_SHARE = 0.5  # stage one also runs on segments at least this share of the longest
 
 
 def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_terms=None,
                     hidden_names=None, closure_library=None, generator="timevae",
                     generator_options=None, training=None, differentiation_method=None,
-                    support=None, n_samples=64, refine=True, seed=0,
+                    support=None, n_samples=64, refine=True, gaps="split", seed=0,
                     verbose=True) -> HiddenDiscovery:
     """Infer hidden variables and a closed, autonomous ODE from partial observations.
 
@@ -65,10 +67,12 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     Parameters
     ----------
     x_observed : array (n_times, n_observed) or list of such arrays
+        One or several recordings of the same system (lengths and sampling rates may
+        differ). Rows with NaN are missing samples.
     library : pysindy feature library, optional
         Candidate functions for the observed equations (default polynomials of degree 2).
     t : float, array or list of arrays
-        Sample spacing or times.
+        Sample spacing or sample times (any spacing: every step uses the actual times).
     feature_names : list of str, optional
         Names of the observed states (default ``x0, x1, ...``).
     hidden_terms : list of (state, feature), optional
@@ -88,6 +92,12 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         Refine every candidate system by integration and judge on held-out data
         (default). Off: candidates are ranked by their closure's held-out error and
         the coefficients come from the closure's integral fit.
+    gaps : {"split", "raise"}
+        ``"split"`` (default): rows with missing values are dropped and a recording is
+        split into segments at gaps (a time step 20 times the spacing around it); the
+        segments share the law and each gets its own hidden initial values; segments
+        under 32 samples are dropped with a note (:mod:`latentsindy._core.recordings`).
+        ``"raise"``: missing values and gaps are an error.
     seed : int
     verbose : bool
 
@@ -95,8 +105,13 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     -------
     HiddenDiscovery
     """
-    trajs = val.as_trajectories(x_observed, "x_observed")
-    times = val.as_times(t, trajs)
+    segments, seg_times, use = recordings.split(x_observed, t, gaps=gaps)
+    # the longest segment first: stage one's coefficients (and the result's first
+    # trajectory) come from it
+    order = [int(np.argmax([len(x) for x in segments]))]
+    order += [k for k in range(len(segments)) if k != order[0]]
+    trajs, times = [segments[k] for k in order], [seg_times[k] for k in order]
+    use = use.reordered(order)
     names = val.check_feature_names(feature_names, trajs[0].shape[1])
     closure_library = (ps.PolynomialLibrary(degree=2) if closure_library is None
                        else closure_library)
@@ -109,10 +124,14 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     _, features = fit_library(check_library(library), trajs[:1], names)
     _check_hidden_request(hidden_terms, hidden_names, names, features)
 
-    # Stage one, one model per trajectory: hidden states differ between trajectories.
-    # Later trajectories reuse the first one's support so the equations are shared.
+    # Stage one on the longest segment, and on every segment at least half as long:
+    # hidden states differ between segments, and a coefficient must vary in each of
+    # them to count as varying. Later segments reuse the first one's support so the
+    # equations are shared; shorter segments enter stage two only.
     fits, coefs = [], []
     for k, (x, tk) in enumerate(zip(trajs, times, strict=True)):
+        if len(x) < STAGE_ONE_SHARE * len(trajs[0]):
+            continue
         model = DynamicSINDy(library, generator=generator, generator_options=generator_options,
                              training=training, differentiation_method=differentiation_method,
                              support=support if k == 0 else fits[0].support_,
@@ -127,7 +146,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
             f"variable to discover (active terms: {first.active_terms()}). If one should vary, "
             "name it with hidden_terms=[(state, feature)].")
 
-    ctx = _context(fits, trajs, times, names, first, closure_library, support)
+    ctx = _context(fits[0], trajs, times, names, first, closure_library, support)
     index = [(names.index(s), first.feature_names.index(f)) for s, f in pairs]
     series = np.stack([first.term(s, f) for s, f in pairs], axis=1)
     if hidden_terms is None:
@@ -141,23 +160,24 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     else:
         stds = {ij: first.std[:, ij[0], ij[1]] for ij in index}
         result = from_proposals(proposals, ctx, first, hidden_names, stds)
+    notes = use.dropped
     if hidden_names is not None and len(hidden_names) != len(result.hidden_names):
-        note = (f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "
-                f"hidden state(s) found; names used: {list(result.hidden_names)}")
-        result = dataclasses.replace(result, notes=result.notes + (note,))
-    return result
+        notes += (f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "
+                  f"hidden state(s) found; names used: {list(result.hidden_names)}",)
+    return dataclasses.replace(result, notes=result.notes + notes, data_use=use)
 
 
-def _context(fits, trajs, times, names, first, closure_library, support):
+def _context(model, trajs, times, names, first, closure_library, support):
     smoothed, spans = [], []
-    for m, x, tk in zip(fits, trajs, times, strict=True):
-        sm, span = _smoothed(m, x, tk)
+    for x, tk in zip(trajs, times, strict=True):
+        sm, span = _smoothed(model, x, tk)
         smoothed.append(sm)
         spans.append(span)
-    library = fits[0].library_
+    library = model.library_
     thetas = [np.asarray(a, dtype=float) for a in library.transform(smoothed)]
     stds = np.std(np.vstack(trajs), axis=0)
-    sigma = np.maximum(np.mean([noise_level(x) for x in trajs], axis=0),
+    sigma = np.maximum(np.mean([noise_level(x, tk) for x, tk in zip(trajs, times, strict=True)],
+                                    axis=0),
                        NOISE_FLOOR * np.where(stds > 0, stds, 1.0))
     span = int(max(spans))
     return Context(tuple(names), tuple(first.feature_names),

@@ -111,7 +111,8 @@ class Problem:
         self.observed = [np.asarray(x, float) for x in observed]
         stds = np.std(np.vstack(self.observed), axis=0)
         stds[stds == 0] = 1.0
-        sigma = np.mean([noise_level(x) for x in self.observed], axis=0)
+        sigma = np.mean([noise_level(x, t) for x, t in zip(self.observed, self.times, strict=True)],
+                        axis=0)
         self.sigma = np.maximum(sigma, NOISE_FLOOR * stds)  # exact data: see NOISE_FLOOR
         relative = float(np.median(self.sigma / stds))
         guess_std = np.std(np.vstack(guesses), axis=0)

@@ -9,6 +9,7 @@ import numpy as np
 import sympy as sp
 
 from .._core import saving
+from .._core.recordings import DataUse
 from .._core.simulate import Simulation, integrate
 from .._core.symbolic import VectorField
 from .._stage_one.coefficients import CoefficientSeries
@@ -119,7 +120,8 @@ class HiddenDiscovery:
     Attributes
     ----------
     times, observed, hidden : ndarray
-        First trajectory: times, observed states (n_times, n_observed), hidden states
+        First trajectory (the longest segment, the one stage one was fitted on): times,
+        observed states (n_times, n_observed), hidden states
         (n_times, n_hidden). With refinement on, ``hidden`` is the closed system's
         trajectory fitted to the data; the stage-two estimate is ``hidden_initial``.
     hidden_std : ndarray (n_times, n_hidden)
@@ -151,6 +153,11 @@ class HiddenDiscovery:
     refinement : Refinement or None
     coefficients : CoefficientSeries
         Stage one's result (first trajectory).
+    all_times, all_observed, all_hidden : list of ndarray
+        Every segment used, in the order of ``data_use.sources``.
+    data_use : DataUse or None
+        Recordings, segments and samples used, rows with missing values dropped, and
+        where each segment came from (None in files written before version 4).
     """
 
     times: np.ndarray
@@ -174,6 +181,7 @@ class HiddenDiscovery:
     hidden_initial: list = field(repr=False, default_factory=list)
     initial_state: np.ndarray = field(repr=False, default=None)
     doubts: tuple = ()
+    data_use: DataUse | None = None
 
     # ----------------------------------------------------------- views
     @property
@@ -332,6 +340,8 @@ class HiddenDiscovery:
             value = f"{what} {alt.score:.4g} " if np.isfinite(alt.score) else ""
             lines.append(f"  runner-up: {alt.description}, {value}({alt.status}), "
                          f"{alt.size} parameters")
+        if self.data_use is not None:
+            lines.append(f"  data: {self.data_use.sentence()}")
         lines += [f"  note: {n}" for n in self.notes]
         return "\n".join(lines)
 

@@ -23,6 +23,8 @@ import numpy as np
 import scipy.sparse as sps
 from scipy.sparse.linalg import spsolve
 
+from .._core.local_fits import positions
+
 _LAMBDAS = np.logspace(-6, 4, 11)  # relative curvature weights searched
 RELAX = 2.0  # over-relaxation of the loadings' alternating updates (see _update_loadings)
 
@@ -89,7 +91,7 @@ def fit_hidden(structure, thetas, observed, times, sigma, spacing, iterations=5)
     times : list of (T,)
     sigma : (n,) measurement noise standard deviation of each observed state
     spacing : int
-        Knot spacing in samples.
+        Knot spacing in mean sample steps (time, for irregular sampling).
     """
     st = structure
     data = _Data(thetas, observed, times, sigma, spacing)
@@ -156,7 +158,7 @@ class _Data:
             self.integral.append((cum @ trap).tocsr())
             self.anchors.append(sps.csr_matrix((np.ones(n), (np.arange(n), seg)),
                                                shape=(n, int(seg.max()) + 1)))
-            self.interp.append(_knots(n, spacing)[1])
+            self.interp.append(_knots(n, spacing, positions(t))[1])
         self.n_rows = sum(x.size for x in self.observed)
         self.n_anchors = sum(a.shape[1] for a in self.anchors) * self.n_obs
 
@@ -164,12 +166,15 @@ class _Data:
         return np.concatenate([(x / self.sigma).T.ravel() for x in self.observed])
 
 
-def _knots(n_times, spacing):
-    """Knot positions (sample indices) and the (T, K) linear interpolation matrix."""
-    knots = np.unique(np.concatenate([np.arange(0, n_times, max(1, spacing)), [n_times - 1]]))
-    j = np.clip(np.searchsorted(knots, np.arange(n_times), side="right") - 1, 0,
-                len(knots) - 2)
-    w = (np.arange(n_times) - knots[j]) / (knots[j + 1] - knots[j])
+def _knots(n_times, spacing, where=None):
+    """Knots every ``spacing`` mean sample steps in time and the (T, K) linear
+    interpolation matrix; ``where`` are the sample times in mean steps (None: uniform,
+    the sample indices), so knots are equally spaced in time for any sampling."""
+    where = np.arange(n_times) if where is None else where
+    knots = np.unique(np.concatenate([np.arange(0, where[-1] + 1, max(1, spacing)),
+                                      [where[-1]]]))
+    j = np.clip(np.searchsorted(knots, where, side="right") - 1, 0, len(knots) - 2)
+    w = (where - knots[j]) / (knots[j + 1] - knots[j])
     rows = np.repeat(np.arange(n_times), 2)
     cols = np.stack([j, j + 1], axis=1).ravel()
     vals = np.stack([1 - w, w], axis=1).ravel()

@@ -35,6 +35,19 @@ class Generator(nn.Module):
 
     Options: type = object
     sequential = False  # True: trained window by window (see latentsindy._stage_one.sequential)
+    positions: torch.Tensor | None = None  # sample times, see allocate()
+    spacing: torch.Tensor | None = None
+
+    def allocate(self, n_times: int, positions: torch.Tensor | None = None) -> None:
+        """Prepare for a series of ``n_times`` samples (the estimator calls this first).
+
+        ``positions`` (n_times,) are the sample times in units of the mean step from
+        the first sample, or None for a uniform grid (where they are the sample
+        indices): coefficients are laid out in time, not by sample, so an irregularly
+        sampled series gets the same coefficient curve as a uniform one.
+        """
+        self.positions = positions
+        self.spacing = None if positions is None else torch.diff(positions)
 
     def sample(self, inputs: torch.Tensor, n_samples: int) -> tuple[torch.Tensor, torch.Tensor]:
         raise NotImplementedError
@@ -53,6 +66,10 @@ def make_options(options_cls, given: dict[str, Any] | None, generator: str):
     return options_cls(**given)
 
 
-def gaussian_kl(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
-    """KL(N(mu, exp(logvar)) || N(0, 1)), summed over all latent elements."""
-    return 0.5 * torch.sum(mu.pow(2) + logvar.exp() - 1.0 - logvar)
+def gaussian_kl(mu: torch.Tensor, logvar: torch.Tensor, prior_var=None) -> torch.Tensor:
+    """KL(N(mu, exp(logvar)) || N(0, prior_var)) (prior variance 1 by default), summed
+    over all latent elements; ``prior_var`` broadcasts against ``mu``."""
+    if prior_var is None:
+        return 0.5 * torch.sum(mu.pow(2) + logvar.exp() - 1.0 - logvar)
+    return 0.5 * torch.sum((mu.pow(2) + logvar.exp()) / prior_var - 1.0 - logvar
+                           + torch.log(prior_var))

@@ -122,6 +122,7 @@ class HyperSINDy(Generator):
         self.chunk = o.chunk
         self.window_len = 1000  # steps per window; the trainer sets it
         self.codes = None  # per-chunk free offsets of the latent means, see allocate()
+        self.chunk_var = None  # per-chunk prior variance of latent changes, see allocate()
         layers: list[nn.Module] = []
         width = n_inputs
         for _ in range(o.encoder_layers - 1):
@@ -146,17 +147,29 @@ class HyperSINDy(Generator):
         nn.init.zeros_(last.bases)
 
     # ---------------------------------------------------------------- pieces
-    def allocate(self, n_times: int) -> None:
+    def allocate(self, n_times: int, positions: torch.Tensor | None = None) -> None:
         """Create the per-chunk offsets for a series of ``n_times`` steps (zeros).
 
         The posterior mean of chunk ``c`` is the encoder's window latent plus a free
         offset ``delta_c`` (a semi-amortised posterior): the encoder supplies what the
         window's data say, the offsets let every chunk be fitted directly, as timeVAE's
         decoder fits its knots. Sparse gradients: a step touches only its window's rows.
+
+        With irregular ``positions`` (see :meth:`Generator.allocate`) a chunk's
+        coefficients sit at its time centre, and the random-walk prior of the latents
+        lets them change in proportion to the time between chunk centres (per unit
+        time, not per sample).
         """
+        super().allocate(n_times, positions)
         n_chunks = -(-n_times // self.chunk)
         self.codes = nn.Embedding(n_chunks, self.options.latent_dim, sparse=True)
         nn.init.zeros_(self.codes.weight)
+        self.chunk_var = None
+        if positions is not None:
+            centres = chunk_centres(0, n_times, self.chunk, positions.dtype, positions.device,
+                                    positions)
+            gaps = torch.diff(centres) / self.chunk
+            self.chunk_var = torch.cat([gaps.new_ones(1), gaps.clamp_min(1e-3)])
 
     def encode(self, inputs: torch.Tensor, memory=None):
         """(B, C_in, W) -> posterior means and log-variances per chunk, and the memory.
@@ -240,7 +253,11 @@ class HyperSINDy(Generator):
         # random-walk prior z_c ~ N(mean of z_{c-1}, 1), z_0 ~ N(0, 1): the KL charges
         # for changes of the latent, not for its size
         before = torch.zeros_like(mu[:1]) if last is None else last[None]
-        kl = gaussian_kl(mu - torch.cat([before, mu[:-1]]), logvar)
+        prior = None
+        if self.chunk_var is not None:  # irregular times: changes scale with the time
+            first = start // self.chunk
+            prior = self.chunk_var[first:first + mu.shape[0], None]
+        kl = gaussian_kl(mu - torch.cat([before, mu[:-1]]), logvar, prior)
         return self.decode(z, alpha), kl, (lstm_state, memory, mu[-1])
 
     def sample(self, inputs: torch.Tensor, n_samples: int, window: int | None = None):
@@ -253,7 +270,8 @@ class HyperSINDy(Generator):
                                               state, start)
             parts.append(series)
             kl = kl + kl_w
-        return interpolate_chunks(torch.cat(parts, dim=1), inputs.shape[-1], self.chunk), kl
+        return interpolate_chunks(torch.cat(parts, dim=1), inputs.shape[-1], self.chunk,
+                                  self.positions), kl
 
 
 def detach_state(state):
@@ -265,11 +283,16 @@ def detach_state(state):
     return state.detach()
 
 
-def chunk_centres(start: int, stop: int, chunk: int, dtype=torch.float32, device=None):
-    """Centres of the chunks of steps [start, stop) (the last chunk may be short)."""
+def chunk_centres(start: int, stop: int, chunk: int, dtype=torch.float32, device=None,
+                  positions=None):
+    """Centres of the chunks of steps [start, stop) (the last chunk may be short): the
+    middle of each chunk's first and last step, in steps, or in ``positions`` (the
+    sample times in mean steps) when given."""
     lo = torch.arange(start, stop, chunk, dtype=dtype, device=device)
     hi = torch.clamp(lo + chunk, max=stop)
-    return (lo + hi - 1) / 2
+    if positions is None:
+        return (lo + hi - 1) / 2
+    return (positions[lo.long()] + positions[hi.long() - 1]) / 2
 
 
 def interpolate_at(values: torch.Tensor, centres: torch.Tensor,
@@ -284,8 +307,11 @@ def interpolate_at(values: torch.Tensor, centres: torch.Tensor,
     return values[:, pos - 1] * (1 - frac) + values[:, pos] * frac
 
 
-def interpolate_chunks(values: torch.Tensor, n_steps: int, chunk: int) -> torch.Tensor:
-    """Chunk values (S, C, K) -> per-step values (S, n_steps, K), linear between centres."""
-    centres = chunk_centres(0, n_steps, chunk, values.dtype, values.device)
-    steps = torch.arange(n_steps, dtype=values.dtype, device=values.device)
+def interpolate_chunks(values: torch.Tensor, n_steps: int, chunk: int,
+                       positions=None) -> torch.Tensor:
+    """Chunk values (S, C, K) -> per-step values (S, n_steps, K), linear in time between
+    chunk centres (``positions``: sample times in mean steps; None: uniform)."""
+    centres = chunk_centres(0, n_steps, chunk, values.dtype, values.device, positions)
+    steps = (torch.arange(n_steps, dtype=values.dtype, device=values.device)
+             if positions is None else positions.to(values.dtype))
     return interpolate_at(values, centres, steps)

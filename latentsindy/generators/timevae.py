@@ -107,10 +107,19 @@ class TimeVAE(Generator):
         return mu, logvar.clamp(-12.0, 6.0)
 
     def decode(self, z: torch.Tensor, n_times: int) -> torch.Tensor:
-        """Latents (S, latent_dim) -> series (S, n_times, n_outputs)."""
+        """Latents (S, latent_dim) -> series (S, n_times, n_outputs): knots equally
+        spaced in time, interpolated linearly to the sample times (``allocate``)."""
         h = F.gelu(self.from_latent(z)).reshape(z.shape[0], self.options.hidden, _BASE)
         knots = self.to_coefficients(self.upsample(h))
-        return F.interpolate(knots, size=n_times, mode="linear", align_corners=True).transpose(1, 2)
+        if self.positions is None or len(self.positions) != n_times:
+            return F.interpolate(knots, size=n_times, mode="linear",
+                                 align_corners=True).transpose(1, 2)
+        # knot k sits at position k (n_times - 1) / (n_knots - 1), whatever the sampling
+        where = self.positions * ((knots.shape[-1] - 1) / max(n_times - 1, 1))
+        left = where.floor().long().clamp(0, knots.shape[-1] - 2)
+        frac = (where - left.to(where.dtype))[None, :, None]
+        knots = knots.transpose(1, 2)
+        return knots[:, left] * (1 - frac) + knots[:, left + 1] * frac
 
     def sample(self, inputs: torch.Tensor, n_samples: int) -> tuple[torch.Tensor, torch.Tensor]:
         mu, logvar = self.encode(inputs)

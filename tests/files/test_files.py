@@ -37,6 +37,8 @@ def test_round_trip_is_exact(saved):
     np.testing.assert_array_equal(back.initial_state, result.initial_state)
     assert back.refinement == result.refinement
     assert back.doubts == result.doubts and back.confident == result.confident
+    assert result.data_use is not None and back.data_use == result.data_use
+    np.testing.assert_array_equal(back.coefficients.times, result.coefficients.times)
     assert len(back.alternatives) == len(result.alternatives)
     for a, b in zip(back.alternatives, result.alternatives, strict=True):
         assert (a.description, a.status, a.size) == (b.description, b.status, b.size)
@@ -63,7 +65,7 @@ def test_doubts_round_trip_and_version_2_files_load(saved, tmp_path):
     _rewrite(path, tmp_path / "v2.npz", to_version_2)
     old = load(tmp_path / "v2.npz")
     assert len(old.doubts) == 1 and "did not record the checks" in old.doubts[0]
-    assert not old.confident
+    assert not old.confident and old.data_use is None
 
 
 def test_expression_trees_round_trip():

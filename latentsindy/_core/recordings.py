@@ -1,0 +1,176 @@
+"""Recordings as measured: missing samples, gaps, and several recordings of one system.
+
+A recording is cut into segments that share the law and each get their own hidden
+initial values. Rows with a missing value (NaN or infinite, in any state or in the
+time) are dropped; a few dropped rows only make the sampling irregular, which every
+later step handles on the actual times. A *gap* is a time step far longer than the
+spacing around it (:data:`GAP_FACTOR` times the mean of the
+:data:`_NEIGHBOURS` steps on either side): the derivative there cannot be estimated
+and a hidden state cannot be carried across it by the data, so the recording is
+split. The factor is wide enough that random (Poisson) sample times, whose longest
+step in 10^5 samples is about 12 mean steps, are never split. Segments too short to
+estimate a derivative and a hidden state's start (:data:`MIN_SEGMENT` samples) are
+dropped, each with a note.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from . import validation as val
+
+GAP_FACTOR = 20.0  # a step this many times the local mean step splits a recording
+MIN_SEGMENT = 32  # fewer samples cannot fix a derivative estimate and a hidden start
+_NEIGHBOURS = 16  # steps on either side that set the local spacing
+GAPS = ("split", "raise")
+
+
+@dataclass(frozen=True)
+class DataUse:
+    """How the data were used: recordings given, segments and samples used, rows with
+    missing values dropped, one sentence per segment that was too short to use, and
+    where each segment used came from: (recording, first row, last row), in the order
+    of the result's trajectories."""
+
+    recordings: int
+    segments: int
+    samples: int
+    missing_rows: int
+    dropped: tuple[str, ...] = ()
+    sources: tuple[tuple[int, int, int], ...] = ()
+
+    def reordered(self, order) -> DataUse:
+        """The same, with the segments in ``order``."""
+        return replace(self, sources=tuple(self.sources[i] for i in order))
+
+    def sentence(self) -> str:
+        rec = f"{self.recordings} recording{'s' if self.recordings > 1 else ''}"
+        text = (f"{rec}, {self.segments} segment{'s' if self.segments > 1 else ''}, "
+                f"{self.samples} samples used")
+        if self.missing_rows:
+            text += f" ({self.missing_rows} rows with missing values dropped)"
+        return text
+
+
+def split(x, t, *, gaps: str = "split", what: str = "x_observed"):
+    """Validate recordings and cut them at missing values and gaps.
+
+    Parameters
+    ----------
+    x : array (n_times, n_states) or list of such arrays (NaN allowed)
+    t : spacing, times, or a list of either (one per recording)
+    gaps : ``"split"`` (default) or ``"raise"`` (refuse missing values and gaps)
+
+    Returns
+    -------
+    segments : list of (n_k, n_states) finite arrays
+    times : list of (n_k,) strictly increasing times
+    use : :class:`DataUse`
+    """
+    if gaps not in GAPS:
+        raise ValueError(f"gaps must be one of {GAPS}; got {gaps!r}.")
+    recordings = _recordings(x, what)
+    times = _times(t, recordings)
+    segments, seg_times, sources, dropped, missing = [], [], [], [], 0
+    for k, (xk, tk) in enumerate(zip(recordings, times, strict=True)):
+        name = f"{what}[{k}]" if len(recordings) > 1 else what
+        bad = ~np.all(np.isfinite(xk), axis=1) | ~np.isfinite(tk)
+        _check_columns(xk, name)
+        if bad.any() and gaps == "raise":
+            raise ValueError(
+                f"{name} has {int(bad.sum())} row(s) with NaN or infinite values (first at row "
+                f"{int(np.argmax(bad))}); with gaps='raise' they are refused. Use the default "
+                "gaps='split' to drop them and split the recording where they leave a gap.")
+        t_name = "t" if len(recordings) == 1 else f"t[{k}]"
+        val._one_times(tk, len(tk), t_name, missing=bad)
+        rows = np.flatnonzero(~bad)
+        missing += int(bad.sum())
+        cuts = gap_steps(tk[rows])
+        if len(cuts) and gaps == "raise":
+            i = int(cuts[0])
+            raise ValueError(
+                f"{name} has {len(cuts)} gap(s): a time step more than {GAP_FACTOR:g} times the "
+                f"spacing around it (first from t={tk[rows[i]]:g} to t={tk[rows[i + 1]]:g}); "
+                "with gaps='raise' they are refused. Use the default gaps='split' to treat "
+                "the pieces as segments of one system.")
+        for piece in np.split(rows, cuts + 1):
+            if len(piece) < MIN_SEGMENT:
+                dropped.append(f"a segment of {name} with {len(piece)} samples (t={tk[piece[0]]:g} "
+                               f"to {tk[piece[-1]]:g}) was dropped: fewer than {MIN_SEGMENT} "
+                               "samples between gaps")
+                continue
+            segments.append(xk[piece])
+            sources.append((k, int(piece[0]), int(piece[-1])))
+            seg_times.append(np.asarray(tk[piece], dtype=float))
+    if not segments:
+        raise ValueError(
+            f"No part of {what} is long enough to use: at least {MIN_SEGMENT} samples without "
+            "a gap are needed (for the differentiator's window and a hidden state's start; "
+            f"hundreds are better), and {'; '.join(dropped)}.")
+    use = DataUse(len(recordings), len(segments), int(sum(len(s) for s in segments)),
+                  missing, tuple(dropped), tuple(sources))
+    return segments, seg_times, use
+
+
+def gap_steps(t) -> np.ndarray:
+    """Indices ``i`` of the steps ``t[i] -> t[i + 1]`` that are gaps."""
+    steps = np.diff(np.asarray(t, dtype=float))
+    n = len(steps)
+    if n < 3:
+        return np.zeros(0, dtype=int)
+    csum = np.concatenate([[0.0], np.cumsum(steps)])
+    idx = np.arange(n)
+    lo = np.maximum(idx - _NEIGHBOURS, 0)
+    hi = np.minimum(idx + _NEIGHBOURS + 1, n)
+    around = (csum[hi] - csum[lo] - steps) / np.maximum(hi - lo - 1, 1)
+    return np.flatnonzero(steps > GAP_FACTOR * around)
+
+
+def _recordings(x, what):
+    if isinstance(x, list | tuple) and len(x) > 0 and np.ndim(x[0]) <= 1:
+        x = np.asarray(x, dtype=object if val._ragged(x) else None)  # one series
+    if isinstance(x, list | tuple):
+        if len(x) == 0:
+            raise ValueError(f"{what} is an empty list; pass at least one recording.")
+        recs = [val.numeric_2d(xi, f"{what}[{k}]") for k, xi in enumerate(x)]
+    else:
+        recs = [val.numeric_2d(x, what)]
+    n_states = {r.shape[1] for r in recs}
+    if len(n_states) > 1:
+        raise ValueError(f"All recordings in {what} must have the same number of states; got "
+                         f"{sorted(n_states)}.")
+    return recs
+
+
+def _times(t, recordings):
+    n = len(recordings)
+    if isinstance(t, list | tuple) and n > 1:
+        if len(t) != n:
+            raise ValueError(f"t is a list of {len(t)} entries but x has {n} recordings.")
+        items = list(t)
+    else:
+        if isinstance(t, list | tuple) and len(t) == 1 and np.ndim(t[0]) >= 1:
+            t = t[0]
+        items = [t] * n
+    out = []
+    for k, (tk, xk) in enumerate(zip(items, recordings, strict=True)):
+        name = "t" if n == 1 else f"t[{k}]"
+        if tk is None:
+            raise TypeError(f"{name} is required: a sample spacing (float) or an array of times.")
+        if np.ndim(tk) == 0:
+            out.append(val._one_times(tk, xk.shape[0], name))
+            continue
+        arr = np.asarray(tk)
+        if arr.dtype.kind in val._KINDS or arr.ndim != 1 or arr.shape[0] != xk.shape[0]:
+            val._one_times(tk, xk.shape[0], name)  # raises the boundary's message
+        out.append(np.asarray(arr, dtype=float))
+    return out
+
+
+def _check_columns(x, name):
+    empty = np.flatnonzero(~np.any(np.isfinite(x), axis=0))
+    if len(empty):
+        raise ValueError(f"{name} has state column(s) {empty.tolist()} with no finite value; "
+                         "drop those columns (a state never measured is a hidden one).")
