@@ -39,22 +39,28 @@ class Family:
     name: str
     description: str
     library: Any  # a callable returning a fresh pysindy library
-    draw: Any  # (rng, noise, seed) -> Draw
+    draw: Any  # (rng, noise, seed, sampling) -> Draw
 
 
 def _sym(names):
     return [sp.Symbol(n, real=True) for n in names]
 
 
+def _times(sampling, t_end):
+    """Sample times from ``sampling(t_end)``, or None (2000 equally spaced samples)."""
+    return None if sampling is None else np.asarray(sampling(t_end), dtype=float)
+
+
 # --------------------------------------------------------------------- Lotka-Volterra
-def _lotka_volterra(rng, noise, seed):
+def _lotka_volterra(rng, noise, seed, sampling=None):
     p = {"alpha": rng.uniform(0.6, 1.4), "beta": rng.uniform(0.05, 0.2),
          "gamma": rng.uniform(0.6, 1.6), "delta": rng.uniform(0.02, 0.1)}
     x_eq, y_eq = p["gamma"] / p["delta"], p["alpha"] / p["beta"]
     x0 = (x_eq * rng.uniform(0.25, 0.75), y_eq * rng.uniform(0.6, 1.4))
     t_end = 5 * 2 * np.pi / np.sqrt(p["alpha"] * p["gamma"])
     d = systems.lotka_volterra(p["alpha"], p["beta"], p["gamma"], p["delta"], t_end=t_end,
-                               n_times=2000, x0=x0, noise=noise, seed=seed)
+                               n_times=2000, x0=x0, noise=noise, seed=seed,
+                               t=_times(sampling, t_end))
     x, y = _sym("xy")
     a, b, g, dl = sp.symbols("alpha beta gamma delta", positive=True)
     rhs = {x: a * x - b * x * y, y: -g * y + dl * x * y}
@@ -66,7 +72,7 @@ def _lotka_volterra(rng, noise, seed):
 
 # ------------------------------------------------------- oscillators with a hidden B(t)
 def _oscillator(sigmoid):
-    def draw(rng, noise, seed):
+    def draw(rng, noise, seed, sampling=None):
         A = -rng.uniform(2.0, 5.0)
         phase = rng.uniform(0, 2 * np.pi)
         x0 = (np.cos(phase), np.sin(phase))
@@ -98,7 +104,7 @@ def _oscillator(sigmoid):
             values = {sA: A, sb0: b0, som: omega}
             natural = (("y", "x"), "rate")
         d = systems.harmonic_oscillator(A=A, B=B, t_end=t_end, n_times=2000, x0=x0,
-                                        noise=noise, seed=seed)
+                                        noise=noise, seed=seed, t=_times(sampling, t_end))
         series = d.parameters["B"][:, None]
         if not sigmoid:  # B and its rate
             series = np.column_stack([series[:, 0], amp * omega * np.cos(omega * d.t + ph)])
@@ -109,14 +115,15 @@ def _oscillator(sigmoid):
 
 
 # --------------------------------------------------------------- FitzHugh-Nagumo
-def _fitzhugh_nagumo(rng, noise, seed):
+def _fitzhugh_nagumo(rng, noise, seed, sampling=None):
     for _ in range(100):  # keep draws that oscillate (the rest sit at a fixed point)
         p = {"a": rng.uniform(0.7, 0.9), "b": rng.uniform(0.6, 0.8),
              "epsilon": rng.uniform(0.06, 0.12), "current": rng.uniform(0.2, 0.5)}
         x0 = (rng.uniform(-2.0, 2.0), rng.uniform(-0.5, 1.5))
         d = systems.fitzhugh_nagumo(p["a"], p["b"], p["epsilon"], p["current"],
                                     t_end=12.0 / p["epsilon"], n_times=2000, x0=x0,
-                                    noise=noise, seed=seed)
+                                    noise=noise, seed=seed,
+                                    t=_times(sampling, 12.0 / p["epsilon"]))
         tail = d.x_clean[len(d.t) // 2:, 0]
         if tail.max() - tail.min() > 2.0:
             break
@@ -130,14 +137,14 @@ def _fitzhugh_nagumo(rng, noise, seed):
 
 
 # ------------------------------------------------------------- Lorenz, z hidden
-def _lorenz_z(rng, noise, seed):
+def _lorenz_z(rng, noise, seed, sampling=None):
     p = {"sigma": rng.uniform(8.0, 12.0), "rho": rng.uniform(24.0, 32.0),
          "beta": rng.uniform(2.0, 3.2)}
     start = (rng.uniform(-10, 10), rng.uniform(-10, 10), rng.uniform(15, 35))
     burn = systems.lorenz(p["sigma"], p["rho"], p["beta"], t_end=10.0, n_times=1001,
                           x0=start)
     d = systems.lorenz(p["sigma"], p["rho"], p["beta"], t_end=20.0, n_times=2000,
-                       x0=burn.x_clean[-1], noise=noise, seed=seed)
+                       x0=burn.x_clean[-1], noise=noise, seed=seed, t=_times(sampling, 20.0))
     x, y, z = _sym("xyz")
     s, r, b = sp.symbols("sigma rho beta")
     rhs = {x: s * (y - x), y: x * (r - z) - y, z: x * y - b * z}
@@ -148,13 +155,14 @@ def _lorenz_z(rng, noise, seed):
 
 
 # ------------------------------------------- one hidden state in two equations
-def _modulated(rng, noise, seed):
+def _modulated(rng, noise, seed, sampling=None):
     p = {"omega": rng.uniform(1.0, 2.0), "k": rng.uniform(0.5, 1.5),
          "epsilon": rng.uniform(0.5, 1.5), "z0": rng.choice([-1, 1]) * rng.uniform(0.4, 0.8)}
     phase = rng.uniform(0, 2 * np.pi)
     d = systems.modulated_oscillator(omega=p["omega"], k=p["k"], epsilon=p["epsilon"],
                                      x0=(np.cos(phase), np.sin(phase), p["z0"]),
-                                     t_end=40.0, n_times=2000, noise=noise, seed=seed)
+                                     t_end=40.0, n_times=2000, noise=noise, seed=seed,
+                                     t=_times(sampling, 40.0))
     x, y, z = _sym("xyz")
     om, k, e = sp.symbols("omega k epsilon")
     rhs = {x: z * x - om * y, y: om * x + k * z * y, z: e * (1 - x**2 - y**2)}
@@ -185,10 +193,12 @@ FAMILIES = {
 }
 
 
-def draw(family: str, index: int, noise: float) -> Draw:
-    """Draw ``index`` of ``family`` (parameters depend on the index only, not the noise)."""
+def draw(family: str, index: int, noise: float, sampling=None) -> Draw:
+    """Draw ``index`` of ``family`` (parameters depend on the index only, not the noise
+    or the sampling). ``sampling(t_end)`` gives the sample times (default 2000 equally
+    spaced ones from 0 to the family's ``t_end``)."""
     rng = np.random.default_rng([_seed(family), index])
-    return FAMILIES[family].draw(rng, noise, 1000 + index)
+    return FAMILIES[family].draw(rng, noise, 1000 + index, sampling)
 
 
 def _seed(name: str) -> int:

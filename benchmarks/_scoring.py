@@ -119,11 +119,18 @@ def r2_hidden(hidden, truth):
 
 def score(result, draw):
     """Metrics of one discover_hidden result against its draw."""
+    out = score_structure(result, draw)
+    out["r2"] = r2_hidden(np.asarray(result.hidden), draw.hidden_true)
+    return out
+
+
+def score_structure(result, draw):
+    """The number of hidden states, extra and missing terms, the largest relative error
+    of the hidden and of the observed equations' coefficients."""
     defs = definitions(result)
     hidden_names = list(result.hidden_names)
     n_true = len(draw.truth["hidden"])
-    out = {"n_hidden": len(hidden_names), "n_hidden_true": n_true,
-           "r2": r2_hidden(np.asarray(result.hidden), draw.hidden_true)}
+    out = {"n_hidden": len(hidden_names), "n_hidden_true": n_true}
     truth = truth_in_variables(draw, defs, hidden_names) if len(defs) == n_true else None
     if truth is None:
         out.update(exact=False, extra=np.nan, missing=np.nan, error=np.inf,

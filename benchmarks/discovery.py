@@ -20,16 +20,19 @@ Usage::
     python benchmarks/discovery.py                 # full: 10 draws, noise 0/1/5/10%
     python benchmarks/discovery.py --quick         # 3 draws at 1% noise
     python benchmarks/discovery.py --families lotka_volterra --draws 5 --noise 0.01 0.05
+    python benchmarks/discovery.py --jobs 14       # 14 processes of one thread each
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 import traceback
 import warnings
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -233,18 +236,36 @@ def table(rows):
     return "\n".join(lines)
 
 
-def main(families=None, draws=10, noise=NOISE, out=None, verbose=False):
+def _single_threaded():
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _run(task):
+    return run_one(*task)
+
+
+def main(families=None, draws=10, noise=NOISE, out=None, verbose=False, jobs=1):
     families = list(families or FAMILIES)
+    tasks = [(fam, k, nz, verbose) for fam in families for nz in noise for k in range(draws)]
     rows = []
-    for fam in families:
-        for nz in noise:
-            for k in range(draws):
-                row = run_one(fam, k, nz, verbose=verbose)
-                rows.append(row)
-                print(f"{fam:20s} noise {nz:.0%} draw {k}: hidden {row['n_hidden']}/"
-                      f"{row['n_hidden_true']} exact {row['exact']} error "
-                      f"{_pct(row['error'])} R^2 {row['r2']:.4f} ({row['wall']:.1f} s)"
-                      + (f" FAILED {row['failed']}" if "failed" in row else ""), flush=True)
+
+    def report(row):
+        rows.append(row)
+        print(f"{row['family']:20s} noise {row['noise']:.0%} draw {row['draw']}: hidden "
+              f"{row['n_hidden']}/{row['n_hidden_true']} exact {row['exact']} error "
+              f"{_pct(row['error'])} R^2 {row['r2']:.4f} ({row['wall']:.1f} s)"
+              + (f" FAILED {row['failed']}" if "failed" in row else ""), flush=True)
+
+    if jobs > 1:  # processes of one thread each (wall times then include contention)
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+        with ProcessPoolExecutor(jobs, initializer=_single_threaded) as pool:
+            for row in pool.map(_run, tasks):
+                report(row)
+    else:
+        for task in tasks:
+            report(run_one(*task))
     print()
     print(table(rows))
     if out:
@@ -260,7 +281,8 @@ if __name__ == "__main__":
     parser.add_argument("--noise", type=float, nargs="+", default=list(NOISE))
     parser.add_argument("--out", help="write every row as JSON here")
     parser.add_argument("--verbose", action="store_true")
+    parser.add_argument("--jobs", type=int, default=1, help="processes (one thread each)")
     args = parser.parse_args()
     if args.quick:
         args.draws, args.noise = 3, [0.01]
-    main(args.families, args.draws, tuple(args.noise), args.out, args.verbose)
+    main(args.families, args.draws, tuple(args.noise), args.out, args.verbose, args.jobs)
