@@ -7,7 +7,7 @@ import math
 import numpy as np
 import sympy as sp
 
-from .judge import build, exchangeable_terms
+from .judge import build, exchangeable_terms, weakly_supported_terms
 from .result import Alternative, HiddenDiscovery, HiddenState, Refinement, Term
 
 # A closed system reproduces held-out data when its score (held-out misfit in noise
@@ -134,15 +134,29 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
         alternatives, unsure, refinement, tuple(notes), list(ctx.times), list(ctx.observed),
         hidden, [np.asarray(h) for h in best.proposal.hidden], trajectories[0][0].copy(),
         doubts(score, score_se, refinement, terms, names)
-        + _exchanges(exchangeable_terms(best), system, rename, names_map))
+        + _exchanges(exchangeable_terms(best), system, rename, names_map)
+        + _weak(weakly_supported_terms(best), system, rename, names_map))
+
+
+def _term_text(cell, system, rename, names_map):
+    r, c = cell
+    state = system.state_names[r]
+    return f"{system.features[c].xreplace(rename)} in d{names_map.get(state, state)}/dt"
+
+
+def _weak(found, system, rename, names_map):
+    """A sentence per term the data support only weakly."""
+    return tuple(
+        f"the data support {_term_text(cell, system, rename, names_map)} only weakly "
+        f"(dropping it raises the misfit by {change:.3g} residual variances, under the "
+        f"{bar:.3g} that very strong evidence needs): it may stand for a small systematic "
+        "error rather than part of the law" for cell, change, bar in found)
 
 
 def _exchanges(moves, system, rename, names_map):
     """A sentence per term exchange the data do not refuse."""
     def term(cell):
-        r, c = cell
-        state = system.state_names[r]
-        return f"{system.features[c].xreplace(rename)} in d{names_map.get(state, state)}/dt"
+        return _term_text(cell, system, rename, names_map)
 
     out = []
     for (kind, (gone, new)), change in moves:

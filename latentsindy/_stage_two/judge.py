@@ -22,7 +22,7 @@ from .field import ParametricSystem
 from .hypotheses import Context, Proposal, close
 from .refine import Fit, Problem, RefineOptions, cross_validate
 from .shooting import BlowUp
-from .terms import ambiguities, select_terms
+from .terms import ambiguities, select_terms, weak_terms
 
 RATE_TRIGGER = 1.5  # best misfit (noise variances) above which rate states are tried
 # Held-out scores below this (noise variances) all count as perfect: on noise-free data
@@ -188,6 +188,17 @@ def exchangeable_terms(verdict: Verdict):
         return []
     try:
         return ambiguities(verdict.problem, verdict.fit, verdict.candidates)
+    except BlowUp:
+        return []
+
+
+def weakly_supported_terms(verdict: Verdict):
+    """Terms of the chosen system that the data support only weakly
+    (:func:`.terms.weak_terms`): [(cell, misfit change, bar)]."""
+    if not verdict.scored or verdict.candidates is None:
+        return []
+    try:
+        return weak_terms(verdict.problem, verdict.fit, verdict.candidates)
     except BlowUp:
         return []
 

@@ -35,6 +35,12 @@ MAX_ATTEMPTS = 3  # exact refits tried per step before giving up
 # refused by the data: a likelihood-ratio difference of 4 is two standard errors of one
 # coefficient.
 AMBIGUITY = 4.0
+# A kept term is doubted when dropping it raises the misfit by less than the price of a
+# term plus this (residual variances): twice the log Bayes factor for the term is then
+# under 10, short of "very strong" evidence (Kass & Raftery 1995). Such a term passed the
+# criterion, but a small systematic error (smoothing bias, a slightly wrong hidden law)
+# buys that much fit as easily as a law does.
+EVIDENCE = 10.0
 
 
 def select_terms(problem: Problem, fit: Fit, candidates, max_steps=MAX_STEPS):
@@ -46,8 +52,7 @@ def select_terms(problem: Problem, fit: Fit, candidates, max_steps=MAX_STEPS):
     # extended BIC (Chen & Chen 2008, gamma = 1/2): the price of a term grows with the
     # number of terms it was chosen from, so that searching many candidates does not
     # let one of them in by chance
-    pool = int((candidates | fit.system.free).sum())
-    price = float(np.log(max(problem.n_data, 2)) + np.log(max(pool, 1)))
+    price = _price(problem, fit, candidates)
     history, tabu = [], set()
     for _ in range(max_steps):
         s2 = max(fit.residual_variance, 1.0)
@@ -101,6 +106,32 @@ def ambiguities(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS):
         if change is not None and change < AMBIGUITY:
             found.append((move, float(change)))
     return found
+
+
+def weak_terms(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS):
+    """Free coefficients of ``fit`` whose removal (the others refitted exactly) raises
+    the misfit by less than the price of a term plus ``EVIDENCE`` residual variances.
+    Returns [(cell, change, bar)], at most ``limit`` refits, weakest first."""
+    s2 = max(fit.residual_variance, 1.0)
+    bar = _price(problem, fit, candidates) + EVIDENCE
+    model = _Quadratic(problem, fit, np.zeros_like(fit.system.free))
+    drops = sorted((m for m in model.moves(0.0, s2) if m[1][0] == "drop"),
+                   key=lambda m: -m[0])
+    found = []
+    for gain, move, keep in drops[:limit]:
+        if -gain >= bar:
+            break
+        trial = _refit(problem, fit, model, keep)
+        change = np.inf if trial is None else (trial.data_cost - fit.data_cost) / s2
+        if change < bar:
+            found.append((move[1], float(change), float(bar)))
+    return found
+
+
+def _price(problem, fit, candidates):
+    """The criterion's price of one term (see :func:`select_terms`)."""
+    pool = int((candidates | fit.system.free).sum())
+    return float(np.log(max(problem.n_data, 2)) + np.log(max(pool, 1)))
 
 
 def _bic(fit, s2, price):
