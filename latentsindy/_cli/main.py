@@ -71,7 +71,7 @@ def _data_files(spec: str) -> tuple[list[Path], bool]:
 
 
 def _series(path, args, observed):
-    columns = read_columns(path, [args.time, *observed])
+    columns = read_columns(path, [args.time, *observed], missing=observed)
     t = columns[args.time]
     if len(t) < 10 or np.any(np.diff(t) <= 0):
         raise UsageError(f"{path}: time column {args.time!r} must increase strictly "
@@ -93,7 +93,7 @@ def _discover(args) -> int:
     result = discover_hidden(x, library, t=t, feature_names=observed,
                              hidden_names=hidden_names, closure_library=closure,
                              generator=args.generator, refine=not args.no_refine,
-                             seed=args.seed, verbose=not args.quiet)
+                             gaps=args.gaps, seed=args.seed, verbose=not args.quiet)
     print(result.summary())
     if args.out:
         result.save(args.out)
@@ -117,7 +117,7 @@ def _discover_batch(args, files, observed, library, closure, hidden_names) -> in
                          backend=args.backend, feature_names=observed,
                          hidden_names=hidden_names, closure_library=closure,
                          generator=args.generator, refine=not args.no_refine,
-                         seeds=[args.seed])
+                         gaps=args.gaps, seeds=[args.seed])
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -194,6 +194,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--generator", choices=("timevae", "hypersindy"), default="timevae")
     d.add_argument("--no-refine", action="store_true",
                    help="skip refinement by integration (faster, nothing is checked)")
+    d.add_argument("--gaps", choices=("split", "raise"), default="split",
+                   help="missing values (empty fields, nan) in observed columns and long "
+                        "time steps split a recording into segments (default) or are refused")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--out", help="write the result here (.npz; read with latentsindy show); "
                                "for a folder or glob: a folder of results")

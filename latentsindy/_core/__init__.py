@@ -2,6 +2,7 @@
 workflow use, and nothing that knows about either stage.
 
 * ``validation``: checks on user input, done once at the boundary;
+* ``recordings``: recordings cut at missing rows and gaps into segments (``DataUse``);
 * ``local_fits``: local polynomial fits on the actual sample times (any spacing);
 * ``derivatives``: noise-adaptive differentiation and the derivative noise level;
 * ``library``: pysindy feature libraries, evaluated and named, as sympy expressions;

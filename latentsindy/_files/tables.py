@@ -16,9 +16,11 @@ class DataError(ValueError):
     """A data file that cannot be read as the columns asked for."""
 
 
-def read_columns(path, names) -> dict[str, np.ndarray]:
+def read_columns(path, names, missing=()) -> dict[str, np.ndarray]:
     """Columns ``names`` of the file at ``path`` as float arrays of one length.
 
+    Columns named in ``missing`` may have missing values (an empty CSV field, ``nan``),
+    returned as NaN; anywhere else a missing value is an error.
     CSV: a header row of column names, then numbers. NPZ and HDF5 (``.h5``, ``.hdf5``):
     each column is a 1-D array (an HDF5 dataset path such as ``run1/x`` for groups); a
     2-D array ``a`` offers its columns as ``a:0``, ``a:1``, ...
@@ -40,7 +42,7 @@ def read_columns(path, names) -> dict[str, np.ndarray]:
     for name in names:
         if name not in columns:
             raise DataError(f"{path}: no column {name!r}; columns are {sorted(columns)}.")
-        out[name] = _numeric(columns[name], name, path)
+        out[name] = _numeric(columns[name], name, path, name in missing)
     lengths = {len(v) for v in out.values()}
     if len(lengths) > 1:
         raise DataError(f"{path}: columns {list(names)} have different lengths "
@@ -48,12 +50,12 @@ def read_columns(path, names) -> dict[str, np.ndarray]:
     return out
 
 
-def _numeric(values, name, path):
+def _numeric(values, name, path, missing_ok=False):
     if isinstance(values, list):  # CSV text
         parsed = np.empty(len(values))
         for row, text in enumerate(values):
             try:
-                parsed[row] = float(text)
+                parsed[row] = np.nan if missing_ok and text == "" else float(text)
             except ValueError:
                 raise DataError(f"{path}: column {name!r} is not numeric: {text!r} in data "
                                 f"row {row + 1}.") from None
@@ -63,7 +65,9 @@ def _numeric(values, name, path):
         raise DataError(f"{path}: column {name!r} must be a 1-D numeric array; got dtype "
                         f"{arr.dtype}, shape {arr.shape}.")
     arr = arr.astype(float)
-    if not np.all(np.isfinite(arr)):
+    if missing_ok:
+        arr[~np.isfinite(arr)] = np.nan
+    elif not np.all(np.isfinite(arr)):
         bad = int(np.flatnonzero(~np.isfinite(arr))[0])
         raise DataError(f"{path}: column {name!r} has a missing or infinite value in data "
                         f"row {bad + 1}; remove or fill it.")

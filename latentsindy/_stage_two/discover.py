@@ -183,14 +183,16 @@ def _context(model, trajs, times, names, first, closure_library, support):
     return Context(tuple(names), tuple(first.feature_names),
                    tuple(feature_expressions(library, first.feature_names, names)),
                    [np.asarray(tk, float) for tk in times], [np.asarray(x) for x in trajs],
-                   smoothed, thetas, sigma, _knot_spacing(span, trajs), span,
+                   smoothed, thetas, sigma, _knot_spacing(min(spans), trajs), span,
                    val.free_rows(support, names), THRESHOLD, closure_library)
 
 
 def _knot_spacing(span, trajs, max_knots=400):
     """Knots of the hidden series every half differentiator window (the finest scale
-    the data resolve), but at most ``max_knots`` per series (a hidden state of an ODE
-    does not need more, and the smoother's cost grows with them)."""
+    the data resolve: the narrowest of the segments' windows, since a segment on a
+    slow stretch of the dynamics gets a wide window that would blur the others), but
+    at most ``max_knots`` per series (a hidden state of an ODE does not need more, and
+    the smoother's cost grows with them)."""
     longest = max(len(x) for x in trajs)
     return int(max(1, span // 2, -(-longest // max_knots)))
 

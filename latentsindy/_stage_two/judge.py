@@ -19,6 +19,7 @@ import sympy as sp
 
 from .._core.library import feature_expressions
 from .field import ParametricSystem
+from .gauge import shifted_guesses, shifted_proposal, shifted_system
 from .hypotheses import Context, Proposal, close
 from .refine import Fit, Problem, RefineOptions, cross_validate
 from .shooting import BlowUp
@@ -178,7 +179,31 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None):
             verdicts.append(_finish(t))
         else:
             verdicts.append(_unscored(t, "rejected"))
-    return rank(verdicts)
+    ordered, uncertain = rank(verdicts)
+    shifted = _shifted(ordered[0], ctx, options) if ordered and ordered[0].scored else None
+    return rank(verdicts + [shifted]) if shifted is not None else (ordered, uncertain)
+
+
+def _shifted(verdict: Verdict, ctx: Context, options) -> Verdict | None:
+    """The chosen system in the gauge that absorbs its observed terms into the hidden
+    states (:mod:`.gauge`), refined, its terms selected and scored; None if there is
+    none or it cannot be integrated."""
+    found = shifted_system(verdict, ctx)
+    if found is None or found[0] is None:
+        return None
+    system, shifts, dropped = found
+    guesses = shifted_guesses(verdict.problem.trajectories(verdict.fit), verdict.system,
+                              shifts)
+    if guesses is None:
+        return None
+    proposal = shifted_proposal(verdict.proposal, dropped, guesses, system.n_observed)
+    try:
+        problem = Problem(system, ctx.times, ctx.observed, guesses, options)
+        trial = _Trial(proposal, problem, problem.fit(system), np.zeros_like(system.free),
+                       verdict.initial_misfit)
+    except BlowUp:
+        return None
+    return _finish(trial)
 
 
 def exchangeable_terms(verdict: Verdict):

@@ -116,3 +116,22 @@ def test_columns_from_npz_and_hdf5(tmp_path):
     with pytest.raises(DataError, match="unknown format '.txt'"):
         (tmp_path / "d.txt").write_text("1")
         read_columns(tmp_path / "d.txt", ["t"])
+
+
+def test_missing_observed_values_are_gaps_and_can_be_refused(tmp_path, capsys):
+    """Empty fields in an observed column are read as missing samples (split into
+    segments by default); --gaps raise refuses them; a missing time is a data error."""
+    from latentsindy._files.tables import read_columns
+
+    path = tmp_path / "holes.csv"
+    rows = ["t,x"] + [f"{0.1 * k:.1f},{'' if k == 20 else np.sin(0.1 * k):}" for k in range(60)]
+    path.write_text("\n".join(rows) + "\n")
+    columns = read_columns(path, ["t", "x"], missing=["x"])
+    assert np.isnan(columns["x"][20]) and np.isfinite(np.delete(columns["x"], 20)).all()
+    code = main(["discover", str(path), "--time", "t", "--observed", "x", "--gaps", "raise",
+                 "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 1 and "1 row(s) with NaN or infinite values (first at row 20)" in err
+    path.write_text("t,x\n0,1\n,2\n2,3\n")
+    _one_line_error(capsys, main(["discover", str(path), "--time", "t", "--observed", "x",
+                                  "--quiet"]), "column 't' has a missing or infinite value")

@@ -1,0 +1,131 @@
+"""Gauge: a hidden state shifted by a function of the observed states.
+
+A hidden state ``h`` is the coefficient of its pivot term ``theta`` in ``dx_i/dt``. When
+that equation also has terms ``c m(x) theta`` (``m`` a monomial of the observed
+states), the shifted state ``h' = h + sum c m(x)`` carries them: the same closed system
+with fewer observed terms (prey-only Lotka-Volterra: ``xdot = x h + d x^2`` is
+``xdot = x h'`` with ``h' = h + d x``). Which of the two the judge reaches depends on
+where stage one's terms happened to land (short or unevenly sampled records keep such a
+term more often), so the chosen system's shift is derived exactly (substitution and the
+chain rule), refitted by integration, its terms selected and scored, and ranked with
+the others: at equal size the one with fewer observed terms wins (:func:`.judge.rank`).
+
+A shift is only taken when the shifted hidden equations stay within the closure
+library (FitzHugh-Nagumo's ``vdot = h + v - v^3/3`` could move ``v - v^3/3`` into ``h``,
+at the price of cubic terms its closure library does not offer: the law stays as found).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import sympy as sp
+
+from .._core.library import feature_expressions
+from .field import ParametricSystem
+
+_TINY = 1e-12  # relative size below which a coefficient of the shifted system is zero
+
+
+def shifted_system(verdict, ctx):
+    """The chosen system with each hidden state shifted to absorb its equation's
+    observed terms, and the shifts; None when nothing can be absorbed or the shifted
+    law leaves the closure library. Returns (system, shifts, dropped) where ``shifts``
+    maps hidden symbols to sympy shifts and ``dropped`` lists (equation, library
+    column) of the absorbed terms."""
+    p, system = verdict.proposal, verdict.system
+    if p.order != 1:
+        return None
+    obs = system.symbols[:system.n_observed]
+    symbols = system.symbols
+    rhs = system.rhs()
+    shifts, dropped = {}, []
+    for a, (i, k) in enumerate(p.structure.pivots):
+        loads = np.argwhere(p.structure.loadings[:, :, a] != 0)
+        if len(loads) != 1 or not ctx.free_rows[i]:
+            continue  # a state seen through several terms: a shift would move them all
+        theta = sp.sympify(ctx.feature_exprs[k])
+        shift = sp.Integer(0)
+        for col, feature in enumerate(system.features):
+            value = system.coef[i, col]
+            if value == 0 or not system.free[i, col] or feature.free_symbols - set(obs):
+                continue
+            ratio = sp.cancel(feature / theta)
+            if ratio.free_symbols <= set(obs) and ratio.is_polynomial(*obs):
+                shift += sp.Float(float(value)) * ratio
+                dropped += [(i, j) for j, e in enumerate(ctx.feature_exprs)
+                            if sp.expand(e) == feature]
+        if shift != 0:
+            shifts[symbols[system.n_observed + a]] = shift
+    if not shifts:
+        return None
+    back = {h: h - s for h, s in shifts.items()}
+    new = {name: sp.expand(rhs[name].xreplace(back)) for name in system.state_names}
+    for h, s in shifts.items():
+        new[h.name] = sp.expand(new[h.name] + sum(sp.diff(s, x) * new[x.name] for x in obs))
+    closure = _closure_features(p, ctx, system)
+    return _assemble(system, new, closure), shifts, dropped
+
+
+def _closure_features(p, ctx, system):
+    names = list(system.state_names[system.n_observed:]) + list(ctx.observed_names)
+    return {sp.expand(e) for e in feature_expressions(p.closure.library,
+                                                      list(p.closure.feature_names), names)}
+
+
+def _assemble(system, rhs, closure):
+    """A ParametricSystem from polynomial right-hand sides; None if a hidden equation
+    needs a term outside the closure library."""
+    symbols = system.symbols
+    rows = []
+    for i, name in enumerate(system.state_names):
+        try:
+            terms = sp.Poly(rhs[name], *symbols).terms()
+        except sp.PolynomialError:
+            return None
+        scale = max((abs(float(c)) for _, c in terms), default=0.0)
+        row = {}
+        for powers, c in terms:
+            if abs(float(c)) > _TINY * scale:
+                row[sp.Mul(*[s**e for s, e in zip(symbols, powers, strict=True)])] = float(c)
+        if i >= system.n_observed and not set(row) <= closure:
+            return None
+        rows.append(row)
+    old = {f: c for c, f in enumerate(system.features)}
+    features = list(system.features) + sorted({f for r in rows for f in r} - set(old),
+                                              key=sp.default_sort_key)
+    coef = np.zeros((len(rows), len(features)))
+    free = np.zeros_like(coef, dtype=bool)
+    for i, row in enumerate(rows):
+        for f, c in row.items():
+            col = features.index(f)
+            coef[i, col] = c
+            fixed = f in old and not system.free[i, old[f]] and system.coef[i, old[f]] != 0
+            free[i, col] = not fixed
+    return ParametricSystem(system.state_names, system.n_observed, tuple(features), coef, free)
+
+
+def shifted_guesses(trajectories, system, shifts):
+    """The fitted trajectories with the hidden states shifted (None if any is not finite)."""
+    symbols = system.symbols
+    out = []
+    for tr in trajectories:
+        if not np.all(np.isfinite(tr)):
+            return None
+        tr = tr.copy()
+        for h, s in shifts.items():
+            f = sp.lambdify(symbols, s, modules="numpy")
+            tr[:, symbols.index(h)] += np.broadcast_to(f(*tr.T), (len(tr),))
+        out.append(tr)
+    return out
+
+
+def shifted_proposal(p, dropped, guesses, n_observed):
+    """The proposal as the shifted system's origin: its absorbed terms out of the
+    structure, its hidden series shifted."""
+    support = p.structure.support.copy()
+    for i, k in dropped:
+        support[i, k] = False
+    return replace(p, structure=replace(p.structure, support=support),
+                   hidden=[g[:, n_observed:] for g in guesses], origin=p.origin + ", shifted")
