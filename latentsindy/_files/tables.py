@@ -54,8 +54,11 @@ def _numeric(values, name, path, missing_ok=False):
     if isinstance(values, list):  # CSV text
         parsed = np.empty(len(values))
         for row, text in enumerate(values):
+            if text == "" and not missing_ok:
+                raise DataError(f"{path}: column {name!r} has a missing or infinite value "
+                                f"in data row {row + 1}; remove or fill it.")
             try:
-                parsed[row] = np.nan if missing_ok and text == "" else float(text)
+                parsed[row] = np.nan if text == "" else float(text)
             except ValueError:
                 raise DataError(f"{path}: column {name!r} is not numeric: {text!r} in data "
                                 f"row {row + 1}.") from None
