@@ -12,6 +12,9 @@ from .._core.local_fits import is_uniform
 
 N_FOLDS = 5
 TOLERANCE = 0.05  # a sparser model is accepted within max(1 standard error, 5%) of the best
+# Held-out errors (relative to the target's variance) below this are all exact: their
+# differences are rounding and quadrature error, not evidence for more terms.
+EXACT = 1e-10
 N_THRESHOLDS = 30
 UNINFORMATIVE = 0.9  # held-out error (relative to the variance) of a useless closure
 
@@ -87,9 +90,10 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
 
 
 def _one_standard_error(candidates):
-    """The sparsest candidate within one standard error (at least 5%) of the best."""
+    """The sparsest candidate within one standard error (at least 5%, and at least
+    ``EXACT``) of the best."""
     best = min(candidates, key=lambda c: c[2])
-    limit = best[2] + max(best[3], TOLERANCE * best[2])
+    limit = best[2] + max(best[3], TOLERANCE * best[2], EXACT)
     return min((c for c in candidates if c[2] <= limit), key=lambda c: (c[1], c[2]))
 
 
