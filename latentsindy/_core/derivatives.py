@@ -11,6 +11,8 @@ object can be passed instead.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pysindy as ps
 from scipy.signal import savgol_coeffs, savgol_filter
@@ -19,18 +21,39 @@ from . import local_fits
 from .local_fits import ORDER as _POLYORDER
 
 
-def noise_level(x: np.ndarray, t=None) -> np.ndarray:
+def noise_level(x, t=None) -> np.ndarray:
     """Robust per-column noise standard deviation (MAD) of white measurement noise.
 
     On a uniform grid (or without ``t``) from 4th differences; on irregular times from
     each sample's residual against the cubic through its neighbours, scaled by that
-    prediction's own noise gain (the same statistic, for any spacing)."""
-    if t is not None and not local_fits.is_uniform(t):
+    prediction's own noise gain (the same statistic, for any spacing). ``x`` may be a
+    list of trajectories with ``t`` a list of their times: their residuals are pooled,
+    so every sample counts once (a mean of per-trajectory levels would let a short
+    segment's rough estimate weigh as much as a long one's)."""
+    if isinstance(x, list | tuple):
+        times = [None] * len(x) if t is None else list(t)
+        if len(x) == 1:
+            return noise_level(x[0], times[0])
+        d = np.vstack([_noise_residuals(np.asarray(xk, float), tk)
+                       for xk, tk in zip(x, times, strict=True)])
+        return 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+    if _irregular(t):
         d = local_fits.neighbour_residuals(x, t)
         return 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0)
     d = np.diff(x, n=4, axis=0)
     mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
     return 1.4826 * mad / np.sqrt(70.0)  # var of 4th difference of white noise = 70 sigma^2
+
+
+def _irregular(t):
+    return t is not None and np.ndim(t) > 0 and not local_fits.is_uniform(t)
+
+
+def _noise_residuals(x, t):
+    """Residuals whose standard deviation is that of the white noise in ``x``."""
+    if _irregular(t):
+        return local_fits.neighbour_residuals(x, t)
+    return np.diff(x, n=4, axis=0) / np.sqrt(70.0)
 
 
 def _max_window(n, max_window):
@@ -41,13 +64,22 @@ def _next_window(w):
     return w + 2 if w < 21 else int(w * 1.2) | 1
 
 
-def choose_window(x: np.ndarray, max_window: int | None = None, t=None) -> int:
-    """Widest odd window whose smoothing residual stays within the noise level (fits
-    on the actual times when ``t`` is irregular)."""
+def window_capped(window: int, n: int, max_window: int | None = None) -> bool:
+    """Whether :func:`choose_window` stopped at its largest allowed window for a series
+    of ``n`` samples: the series' length, not its noise, limited the window."""
+    return _next_window(int(window)) > min(_max_window(n, max_window), n - (1 - n % 2))
+
+
+def choose_window(x: np.ndarray, max_window: int | None = None, t=None,
+                  sigma: float | None = None) -> int:
+    """Widest odd window whose smoothing residual stays within the noise level
+    ``sigma`` (estimated from ``x`` when not given; fits on the actual times when ``t``
+    is irregular)."""
     n = x.shape[0]
     max_window = _max_window(n, max_window)
     irregular = t is not None and not local_fits.is_uniform(t)
-    sigma = float(noise_level(x[:, None], t)[0])
+    if sigma is None:
+        sigma = float(noise_level(x[:, None], t)[0])
     best = _POLYORDER + 2
     if sigma <= 1e-12 * max(1.0, float(np.std(x))):
         return best
@@ -109,6 +141,11 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
     ----------
     max_window : int, optional
         Upper bound on the window (default: a fifth of the series, at most 301).
+    noise_std : float or array (n_states,), optional
+        The measurement noise's standard deviation per state, when known (or pooled
+        over several recordings of one instrument: a short series estimates its own
+        noise level poorly, and an underestimate shrinks the window several-fold).
+        Default: estimated from each series (:func:`noise_level`).
 
     Examples
     --------
@@ -123,8 +160,21 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
     True
     """
 
-    def __init__(self, max_window: int | None = None):
+    def __init__(self, max_window: int | None = None, noise_std=None):
         self.max_window = max_window
+        self.noise_std = noise_std
+
+    def _sigmas(self, n_states):
+        """The given noise level per state (None entries: estimate)."""
+        if self.noise_std is None:
+            return [None] * n_states
+        sigma = np.asarray(self.noise_std, dtype=float)
+        if sigma.ndim == 0:
+            sigma = np.full(n_states, float(sigma))
+        if sigma.shape != (n_states,) or not np.all(np.isfinite(sigma) & (sigma >= 0)):
+            raise ValueError(f"noise_std must be one non-negative finite number or one per "
+                             f"state ({n_states}); got {self.noise_std!r}.")
+        return [float(v) for v in sigma]
 
     def _differentiate(self, x, t):
         x = np.asarray(x, dtype=float)
@@ -134,7 +184,8 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
             steps = np.diff(np.asarray(t, dtype=float))
         if not np.allclose(steps, steps.mean(), rtol=1e-6, atol=0):
             return self._irregular(x, np.concatenate([[0.0], np.cumsum(steps)]))
-        self.windows_ = [choose_window(x[:, j], self.max_window) for j in range(x.shape[1])]
+        self.windows_ = [choose_window(x[:, j], self.max_window, sigma=s)
+                         for j, s in enumerate(self._sigmas(x.shape[1]))]
         smooth = np.empty_like(x)
         out = np.empty_like(x)
         dt = float(steps.mean())
@@ -153,7 +204,8 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
     def _irregular(self, x, t):
         """Local cubic fits on the actual times: windows by the discrepancy principle,
         half-width windows within half a window of the ends (as on a grid)."""
-        self.windows_ = [choose_window(x[:, j], self.max_window, t) for j in range(x.shape[1])]
+        self.windows_ = [choose_window(x[:, j], self.max_window, t, s)
+                         for j, s in enumerate(self._sigmas(x.shape[1]))]
         smooth = np.empty_like(x)
         out = np.empty_like(x)
         gains = np.empty_like(x)
@@ -174,15 +226,16 @@ def default_differentiation():
     return AdaptiveSavitzkyGolay()
 
 
-def derivative_noise_std(method, x, t, x_dot):
+def derivative_noise_std(method, x, t, x_dot, sigma=None):
     """Standard deviation of the noise that ``method`` passes into each derivative.
 
-    The states' noise level comes from high-order differences (on the actual times);
-    the method's gain on white noise from its own coefficients (the default) or, for
-    any other method, from its response to a small white-noise perturbation (exact for
-    linear methods).
+    The states' noise level ``sigma`` comes from high-order differences (on the actual
+    times; estimated from ``x`` when not given); the method's gain on white noise from
+    its own coefficients (the default) or, for any other method, from its response to
+    a small white-noise perturbation (exact for linear methods).
     """
-    sigma = noise_level(x, t if np.ndim(t) else None)
+    if sigma is None:
+        sigma = noise_level(x, t if np.ndim(t) else None)
     gain = getattr(method, "noise_gain_", None)
     if gain is None or len(gain) != x.shape[1]:
         eps = 1e-3 * np.maximum(x.std(axis=0), 1e-12)
@@ -195,9 +248,11 @@ def derivative_noise_std(method, x, t, x_dot):
 def differentiate(method, trajectories, times):
     """Apply a pysindy differentiation method to each trajectory; reject NaN edges.
 
-    Returns the derivatives, the derivative noise std per state, and per-sample
-    likelihood weights (the inverse relative noise variance; zero within half a window
-    of either end, where a smoothing differentiator extrapolates).
+    Returns the derivatives, the derivative noise std per state (the states' noise
+    level pooled over the trajectories, each trajectory's gain weighted by its
+    samples), and per-sample likelihood weights (the inverse relative noise variance;
+    zero within half a window of either end, where a smoothing differentiator
+    extrapolates).
     """
     method = method if method is not None else default_differentiation()
     if not callable(method):
@@ -206,6 +261,13 @@ def differentiate(method, trajectories, times):
             f"ps.SmoothedFiniteDifference(); got {type(method).__name__}."
         )
     out, noise, weights = [], [], []
+    sigma = noise_level(list(trajectories), [t if np.ndim(t) else None for t in times])
+    if isinstance(method, AdaptiveSavitzkyGolay):
+        if method.noise_std is not None:
+            sigma = np.asarray(method._sigmas(len(sigma)))
+        elif len(trajectories) > 1:  # one instrument: its noise level from all samples
+            method = copy.copy(method)
+            method.noise_std = sigma
     for x, t in zip(trajectories, times, strict=True):
         d = np.asarray(method(x, t), dtype=float)
         if d.shape != x.shape or not np.all(np.isfinite(d)):
@@ -214,7 +276,7 @@ def differentiate(method, trajectories, times):
                 f"{int(np.sum(~np.isfinite(d)))} non-finite values for data of shape {x.shape}; "
                 "use a method that fills the edges (e.g. FiniteDifference(drop_endpoints=False))."
             )
-        noise.append(derivative_noise_std(method, x, t, d))
+        noise.append(derivative_noise_std(method, x, t, d, sigma))
         profile = getattr(method, "noise_profile_", None)
         weights.append(1.0 / profile if profile is not None and profile.shape == x.shape
                        else np.ones_like(x))
@@ -224,4 +286,4 @@ def differentiate(method, trajectories, times):
             weights[-1][: w // 2, j] = 0.0
             weights[-1][x.shape[0] - w // 2:, j] = 0.0
         out.append(d)
-    return out, np.mean(noise, axis=0), weights
+    return out, np.average(noise, axis=0, weights=[len(x) for x in trajectories]), weights

@@ -145,8 +145,7 @@ class DynamicSINDy:
             if [d.shape for d in xdots] != [tr.shape for tr in trajs]:
                 raise ValueError(f"x_dot shapes {[d.shape for d in xdots]} must match x shapes "
                                  f"{[tr.shape for tr in trajs]}.")
-            noise_std = np.mean([noise_level(d, tk) for d, tk in zip(xdots, times, strict=True)],
-                                axis=0)
+            noise_std = noise_level(list(xdots), list(times))
             weights = [np.ones_like(d) for d in xdots]
         library = check_library(self.library)
         thetas, feature_list = fit_library(library, trajs, names)

@@ -17,7 +17,7 @@ import pysindy as ps
 
 from .._core import recordings
 from .._core import validation as val
-from .._core.derivatives import AdaptiveSavitzkyGolay, noise_level
+from .._core.derivatives import AdaptiveSavitzkyGolay, noise_level, window_capped
 from .._core.library import check_library, feature_expressions, fit_library
 from .._stage_one.estimator import DynamicSINDy
 from .assemble import from_proposals, from_verdicts
@@ -125,9 +125,13 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     _check_hidden_request(hidden_terms, hidden_names, names, features)
 
     # Stage one on the longest segment, and on every segment at least half as long:
-    # hidden states differ between segments, and a coefficient must vary in each of
-    # them to count as varying. Later segments reuse the first one's support so the
+    # hidden states differ between segments, and the evidence that a coefficient varies
+    # is pooled over them. Later segments reuse the first one's support so the
     # equations are shared; shorter segments enter stage two only.
+    if differentiation_method is None and len(trajs) > 1:
+        # one noise level for every segment (the model stage two fits): a short
+        # segment's own estimate is rough, and the differentiator's window hangs on it
+        differentiation_method = AdaptiveSavitzkyGolay(noise_std=noise_level(trajs, times))
     fits, coefs = [], []
     for k, (x, tk) in enumerate(zip(trajs, times, strict=True)):
         if len(x) < STAGE_ONE_SHARE * len(trajs[0]):
@@ -148,7 +152,8 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
 
     ctx = _context(fits[0], trajs, times, names, first, closure_library, support)
     index = [(names.index(s), first.feature_names.index(f)) for s, f in pairs]
-    series = np.stack([first.term(s, f) for s, f in pairs], axis=1)
+    series = np.stack([np.concatenate([c.term(s, f) for c in coefs]) for s, f in pairs],
+                      axis=1)
     if hidden_terms is None:
         proposals = propose(ctx, first.support, index, series)
     else:
@@ -168,33 +173,45 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
 
 
 def _context(model, trajs, times, names, first, closure_library, support):
-    smoothed, spans = [], []
+    smoothed, spans, capped = [], [], []
     for x, tk in zip(trajs, times, strict=True):
-        sm, span = _smoothed(model, x, tk)
+        sm, span, cap = _smoothed(model, x, tk)
         smoothed.append(sm)
         spans.append(span)
+        capped.append(cap)
     library = model.library_
     thetas = [np.asarray(a, dtype=float) for a in library.transform(smoothed)]
     stds = np.std(np.vstack(trajs), axis=0)
-    sigma = np.maximum(np.mean([noise_level(x, tk) for x, tk in zip(trajs, times, strict=True)],
-                                    axis=0),
+    sigma = np.maximum(noise_level(list(trajs), list(times)),
                        NOISE_FLOOR * np.where(stds > 0, stds, 1.0))
     span = int(max(spans))
     return Context(tuple(names), tuple(first.feature_names),
                    tuple(feature_expressions(library, first.feature_names, names)),
                    [np.asarray(tk, float) for tk in times], [np.asarray(x) for x in trajs],
-                   smoothed, thetas, sigma, _knot_spacing(min(spans), trajs), span,
+                   smoothed, thetas, sigma, _knot_spacing(spans, capped, times), span,
                    val.free_rows(support, names), THRESHOLD, closure_library)
 
 
-def _knot_spacing(span, trajs, max_knots=400):
-    """Knots of the hidden series every half differentiator window (the finest scale
-    the data resolve: the narrowest of the segments' windows, since a segment on a
-    slow stretch of the dynamics gets a wide window that would blur the others), but
-    at most ``max_knots`` per series (a hidden state of an ODE does not need more, and
-    the smoother's cost grows with them)."""
-    longest = max(len(x) for x in trajs)
-    return int(max(1, span // 2, -(-longest // max_knots)))
+def _knot_spacing(spans, capped, times, max_knots=400):
+    """Knot spacing of the hidden series per trajectory, in its mean sample steps.
+
+    Knots sit every half differentiator window in time: the finest scale the data
+    resolve. With several segments that is the narrowest window (in time) among the
+    segments whose window the noise chose: a segment on a slow stretch of the dynamics
+    gets a wide window that would blur the others, while a short segment's window is
+    limited by its length (``capped``), which says nothing about the dynamics. Every
+    series gets at most ``max_knots`` knots over the longest one's duration (a hidden
+    state of an ODE does not need more, and the smoother's cost grows with them).
+    """
+    steps = [(t[-1] - t[0]) / max(len(t) - 1, 1) for t in times]
+    widths = [s * w for s, w, c in zip(steps, spans, capped, strict=True) if not c]
+    if not widths:
+        widths = [s * w for s, w in zip(steps, spans, strict=True)]
+    longest = int(np.argmax([len(t) for t in times]))
+    coarsest = -(-len(times[longest]) // max_knots) * steps[longest]
+    spacing = max(min(widths) / 2, coarsest)
+    # floor with a little slack: one uniform series gives exactly span // 2 samples
+    return [int(max(1, np.floor(spacing / s + 1e-6))) for s in steps]
 
 
 def _named_structure(support, index):
@@ -209,15 +226,18 @@ def _named_structure(support, index):
 
 def _smoothed(model, x, t):
     """The observed states as the stage-one differentiator smoothed them (less noise in
-    the closure library), or the raw data when the method keeps no smoothed copy; and
-    the differentiator's resolution in samples (its widest smoothing window, or 1)."""
+    the closure library), or the raw data when the method keeps no smoothed copy; the
+    differentiator's resolution in samples (its widest smoothing window, or 1); and
+    whether that window was limited by the series' length rather than its noise."""
     method = copy.deepcopy(model.differentiation_method) or AdaptiveSavitzkyGolay()
     method(x, t)
     smooth = getattr(method, "smoothed_x_", None)
     span = int(max(getattr(method, "windows_", None) or [1]))
+    capped = (isinstance(method, AdaptiveSavitzkyGolay)
+              and window_capped(span, len(x), method.max_window))
     if smooth is None or np.shape(smooth) != x.shape:
-        return x, span
-    return np.asarray(smooth), span
+        return x, span, capped
+    return np.asarray(smooth), span, capped
 
 
 def _check_hidden_request(hidden_terms, hidden_names, states, features):
@@ -244,8 +264,13 @@ def _check_hidden_request(hidden_terms, hidden_names, states, features):
 
 
 def _varying(coefs, hidden_terms):
-    """Stage one's varying coefficients (or the named ones), most significant first:
-    variation over time relative to the posterior spread, the weakest trajectory's."""
+    """Stage one's varying coefficients (or the named ones), most significant first.
+
+    With several segments the evidence is pooled: a coefficient varies when its series
+    over all of them (within and between segments) varies beyond the posterior spread.
+    A hidden state need not move in every segment: a transient is flat before and after
+    it, and a recording that holds only its start shows a constant, at another level
+    than the next one's."""
     first = coefs[0]
     if hidden_terms is not None:
         pairs = [tuple(p) for p in hidden_terms]
@@ -257,10 +282,10 @@ def _varying(coefs, hidden_terms):
         return pairs
     found = []
     for s, f in first.active_terms():
-        if all(_varies(c.term(s, f), c.term_std(s, f)) for c in coefs):
-            sig = min(float(np.std(c.term(s, f))) / max(float(np.mean(c.term_std(s, f))),
-                                                        1e-300) for c in coefs)
-            found.append((sig, (s, f)))
+        mean = np.concatenate([c.term(s, f) for c in coefs])
+        std = np.concatenate([c.term_std(s, f) for c in coefs])
+        if _varies(mean, std):
+            found.append((float(np.std(mean)) / max(float(np.mean(std)), 1e-300), (s, f)))
     found.sort(key=lambda item: -item[0])
     return [p for _, p in found]
 

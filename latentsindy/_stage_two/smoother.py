@@ -90,8 +90,9 @@ def fit_hidden(structure, thetas, observed, times, sigma, spacing, iterations=5)
         The observed states as measured.
     times : list of (T,)
     sigma : (n,) measurement noise standard deviation of each observed state
-    spacing : int
-        Knot spacing in mean sample steps (time, for irregular sampling).
+    spacing : int or list of int
+        Knot spacing in mean sample steps of each trajectory (in time, for irregular
+        sampling); one number for all, or one per trajectory.
     """
     st = structure
     data = _Data(thetas, observed, times, sigma, spacing)
@@ -137,10 +138,12 @@ class _Data:
         self.observed = [np.asarray(x, float) for x in observed]
         self.sigma = np.asarray(sigma, float)
         self.n_obs = self.observed[0].shape[1]
-        length = int(np.clip(4 * spacing, 16, 200))
+        spacings = ([spacing] * len(self.observed) if np.ndim(spacing) == 0
+                    else [int(s) for s in spacing])
         self.integral, self.anchors, self.interp = [], [], []
-        for x, t in zip(self.observed, times, strict=True):
+        for x, t, spacing in zip(self.observed, times, spacings, strict=True):
             n = len(x)
+            length = int(np.clip(4 * spacing, 16, 200))
             seg = np.minimum(np.arange(n) // length, max((n - 1) // length, 0))
             if n - np.searchsorted(seg, seg[-1]) < length // 2 and seg[-1] > 0:
                 seg[seg == seg[-1]] = seg[-1] - 1  # no short last segment

@@ -6,6 +6,7 @@ import pytest
 import sympy as sp
 
 from latentsindy import discover_hidden, systems
+from latentsindy._stage_two.discover import _knot_spacing, _varying
 
 
 @pytest.fixture(scope="module")
@@ -48,3 +49,36 @@ def test_segments_are_reported(irregular_with_gaps):
     rows = rows[np.isfinite(x[rows, 0])]
     np.testing.assert_array_equal(result.times, data.t[rows])
     assert result.compare_hidden(data.x_clean[rows, 1]).r2[0] > 0.999
+
+
+def test_knots_follow_time_not_samples():
+    """Knot spacing: one uniform series gets half its window (in samples); a second
+    segment sampled twice as densely gets twice as many samples per knot (the same time);
+    a short segment whose window its length limited sets nothing; when every window is
+    limited, the narrowest one counts; at most 400 knots over the longest series."""
+    t1 = np.arange(2000) * 0.01
+    assert _knot_spacing([97], [False], [t1]) == [48]
+    t2 = np.arange(500) * 0.005
+    assert _knot_spacing([97, 195], [False, False], [t1, t2]) == [48, 97]
+    assert _knot_spacing([97, 19], [False, True], [t1, t2[:100]]) == [48, 97]
+    assert _knot_spacing([61, 19], [True, True], [t1[:305], t2[:100]]) == [4, 9]
+    assert _knot_spacing([3], [False], [np.arange(40_000) * 0.01]) == [100]
+
+
+def _coefficients(*series):
+    """Stand-ins for stage one's coefficient series of one term on several segments."""
+    from types import SimpleNamespace
+
+    return [SimpleNamespace(term=lambda s, f, m=m: m, term_std=lambda s, f: np.full(50, 0.01),
+                            active_terms=lambda: [("y", "x")]) for m in series]
+
+
+def test_variation_is_pooled_over_segments():
+    """A transient that sits at one level in one segment and at another in the next
+    varies (a hidden state need not move in every segment); the same level in both is a
+    constant."""
+    flat = np.full(50, 2.0)
+    assert _varying(_coefficients(flat, flat + 0.5), None) == [("y", "x")]
+    assert _varying(_coefficients(flat, flat + 1e-3), None) == []
+    ramp = np.linspace(2.0, 2.5, 50)
+    assert _varying(_coefficients(flat, ramp), None) == [("y", "x")]
