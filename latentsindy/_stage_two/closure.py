@@ -45,7 +45,7 @@ class ClosureFit:
 
 
 def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, observed_names,
-                span=1) -> ClosureFit:
+                span=1, edges=None) -> ClosureFit:
     """Fit ``d hidden/dt = f(hidden, observed)`` by STLSQ with a cross-validated threshold.
 
     STLSQ (normalised columns, unbiased) is run along a geometric grid of thresholds;
@@ -64,6 +64,11 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
     samples. That needs no derivative of h and averages out errors of h on scales
     shorter than ``span`` (the data resolve nothing finer than the differentiator's
     smoothing window).
+
+    ``edges`` (one per trajectory) are the samples at either end whose rates the
+    differentiator extrapolated (half its window): they stay out of the pointwise
+    selection, as they stay out of stage one's likelihood (a series cut by gaps has
+    many ends, and a short one is nearly all end); the integral refit uses them.
     """
     hidden = [np.asarray(h, dtype=float) for h in hidden]
     observed = [np.asarray(u, dtype=float) for u in observed]
@@ -72,8 +77,10 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
     lib.fit(states)
     names = tuple(lib.get_feature_names(list(hidden_names) + list(observed_names)))
     thetas = [np.asarray(a, dtype=float) for a in lib.transform(states)]
-    target = np.vstack([np.asarray(d, dtype=float) for d in hidden_dot])
-    candidates = path(np.vstack(thetas), target)
+    inner = _interior(len(thetas), [len(a) for a in thetas], edges)
+    candidates = path(np.vstack([thetas[k][rows] for k, rows in inner]),
+                      np.vstack([np.asarray(hidden_dot[k], dtype=float)[rows]
+                                 for k, rows in inner]))
     chosen = _one_standard_error(candidates)
     if chosen[2] >= UNINFORMATIVE and span > 1:
         # pointwise rates too noisy for any term to predict held-out data: select in
@@ -87,6 +94,17 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
     coef = refit_integral(chosen[4] != 0, thetas, hidden, times, span)
     table = [(c[0], c[1], c[2]) for c in candidates]
     return ClosureFit(coef, names, lib, chosen[2], table)
+
+
+def _interior(n_traj, lengths, edges):
+    """(trajectory, row slice) of the rows away from every trajectory's ends; all
+    rows when no trajectory has an interior."""
+    if edges is None:
+        return [(k, slice(None)) for k in range(n_traj)]
+    inner = [(k, slice(int(e), n - int(e))) for k, (n, e) in enumerate(zip(lengths, edges,
+                                                                          strict=True))
+             if n - 2 * int(e) >= 1]
+    return inner or [(k, slice(None)) for k in range(n_traj)]
 
 
 def _one_standard_error(candidates):

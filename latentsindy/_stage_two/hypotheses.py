@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+import sympy as sp
 
 from .._core.derivatives import AdaptiveSavitzkyGolay
 from .closure import ClosureFit, fit_closure, fit_rate_closure
@@ -46,7 +47,7 @@ class Context:
     smoothed: list
     thetas: list  # library on the smoothed states
     sigma: np.ndarray  # measurement noise std per observed state
-    spacing: int  # knot spacing of hidden series, samples
+    spacing: list  # knot spacing of hidden series per trajectory, its mean sample steps
     span: int  # differentiator window, samples
     free_rows: np.ndarray  # equations whose terms are learned
     threshold: float
@@ -86,14 +87,21 @@ def close(structure, fit, ctx, origin, order=1):
         closure = fit_rate_closure(hidden, rates, ctx.smoothed, ctx.times, ctx.closure_library,
                                    ["g0"] + names + list(ctx.observed_names), ctx.span)
         return Proposal(structure, fit, closure, states, 2, origin)
-    targets = [_derivative(h, t) for h, t in zip(hidden, ctx.times, strict=True)]
-    closure = fit_closure(hidden, targets, ctx.smoothed, ctx.times, ctx.closure_library,
-                          names, list(ctx.observed_names), ctx.span)
+    rates = [_derivative(h, t, edge=True) for h, t in zip(hidden, ctx.times, strict=True)]
+    closure = fit_closure(hidden, [r for r, _ in rates], ctx.smoothed, ctx.times,
+                          ctx.closure_library, names, list(ctx.observed_names), ctx.span,
+                          edges=[e for _, e in rates])
     return Proposal(structure, fit, closure, hidden, 1, origin)
 
 
-def _derivative(series, t):
-    return AdaptiveSavitzkyGolay()(np.asarray(series, float), t)
+def _derivative(series, t, edge=False):
+    """The series' rate; with ``edge``, also the samples at either end whose rate was
+    extrapolated (half the widest window)."""
+    method = AdaptiveSavitzkyGolay()
+    rate = method(np.asarray(series, float), t)
+    if edge:
+        return rate, max(method.windows_, default=1) // 2
+    return rate
 
 
 def propose(ctx: Context, support, varying_pairs, series):
@@ -135,6 +143,13 @@ def propose(ctx: Context, support, varying_pairs, series):
             add(improve_constants(p, ctx))
         first += [trials[0], fitting]
         best_carrier[i] = trials[0]
+    # the always-judged structures also in the gauge where the hidden state carries its
+    # equation's terms that are its carrier times observed states (see gauge_reduced)
+    for p in list(first):
+        q = gauge_reduced(p, ctx)
+        if q is not None:
+            add(q)
+            first.append(q)
     if len(best_carrier) > 1:  # variation in several equations: one hidden or several
         for structure in _across_equations(best_carrier, support):
             p = evaluate(structure, ctx, "shared")
@@ -147,6 +162,39 @@ def propose(ctx: Context, support, varying_pairs, series):
         if len(chosen) >= len(first) + KEEP:
             break
     return chosen
+
+
+def gauge_reduced(p: Proposal, ctx: Context) -> Proposal | None:
+    """The proposal without the constant terms that are a hidden state's carrier times
+    a monomial of the observed states, in the carrier's equation (None when it has
+    none). Beside a hidden coefficient ``h`` of ``theta`` such a term ``c m theta`` is
+    not identifiable (``h + c m`` explains the data as well), and the smoother splits
+    the two by its roughness penalty alone; without it the hidden state takes the term
+    in, and its law may close where the split one's does not (prey-only Lotka-Volterra
+    with stage one's x^2 and x^3 beside the carrier x)."""
+    support = gauge_free_support(p.structure, ctx.feature_exprs, ctx.free_rows)
+    if np.array_equal(support, p.structure.support):
+        return None
+    return evaluate(replace(p.structure, support=support), ctx, p.origin + ", gauge", p.order)
+
+
+def gauge_free_support(st: Structure, feature_exprs, free_rows) -> np.ndarray:
+    """``st.support`` less the constant terms of each hidden state's own equation that
+    are its carrier times a monomial of the observed states (see :func:`gauge_reduced`);
+    equations seen through several terms, or fixed, keep theirs."""
+    obs = set().union(*(sp.sympify(e).free_symbols for e in feature_exprs))
+    support = st.support.copy()
+    for a, (i, k) in enumerate(st.pivots):
+        if not free_rows[i] or np.count_nonzero(st.loadings[:, :, a]) != 1:
+            continue
+        carrier = sp.sympify(feature_exprs[k])
+        for j in np.flatnonzero(support[i]):
+            if j == k or st.varying[i, j]:
+                continue
+            ratio = sp.cancel(sp.sympify(feature_exprs[j]) / carrier)
+            if ratio.free_symbols <= obs and ratio.is_polynomial(*obs):
+                support[i, j] = False
+    return support
 
 
 def _usable(proposals):
