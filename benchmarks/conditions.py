@@ -31,12 +31,9 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import time
 import warnings
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +41,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _families import FAMILIES, draw  # noqa: E402
+from _runner import run_all  # noqa: E402
 from _scoring import score_structure  # noqa: E402
 
 from latentsindy import discover_hidden  # noqa: E402
@@ -188,42 +186,21 @@ def table(rows):
     return "\n".join(lines)
 
 
-def _single_threaded():
-    import torch
-
-    torch.set_num_threads(1)
-
-
-def _run(args):
-    return run_one(*args)
-
-
 def main(families=DEFAULT_FAMILIES, draws=10, noise=(0.01, 0.05), conditions=CONDITIONS,
          jobs=1, out=None):
     tasks = [(f, k, nz, c) for f in families for nz in noise for c in conditions
              for k in range(draws)]
-    rows = []
 
     def report(row):
-        rows.append(row)
         print(f"{row['family']:20s} {row['noise']:.0%} {row['condition']:10s} draw "
               f"{row['draw']}: hidden {row['n_hidden']}/{row['n_hidden_true']} exact "
               f"{row['exact']} confident {row['confident']} error {_pct(row['error'])} "
               f"R^2 {row['r2']:.4f} ({row['wall']:.1f} s)"
               + (f" FAILED {row['failed']}" if "failed" in row else ""), flush=True)
 
-    if jobs > 1:
-        os.environ.setdefault("OMP_NUM_THREADS", "1")
-        with ProcessPoolExecutor(jobs, initializer=_single_threaded) as pool:
-            for row in pool.map(_run, tasks):
-                report(row)
-    else:
-        for task in tasks:
-            report(run_one(*task))
+    rows = run_all(run_one, tasks, report, jobs, out)
     print()
     print(table(rows))
-    if out:
-        Path(out).write_text(json.dumps(rows, indent=1, default=float))
     return rows
 
 

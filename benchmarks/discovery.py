@@ -26,13 +26,10 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import time
 import traceback
 import warnings
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +39,7 @@ import sympy as sp
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _families import FAMILIES, draw  # noqa: E402
+from _runner import run_all  # noqa: E402
 from _scoring import (  # noqa: E402
     _natural,
     natural_series,
@@ -236,40 +234,19 @@ def table(rows):
     return "\n".join(lines)
 
 
-def _single_threaded():
-    import torch
-
-    torch.set_num_threads(1)
-
-
-def _run(task):
-    return run_one(*task)
-
-
 def main(families=None, draws=10, noise=NOISE, out=None, verbose=False, jobs=1):
     families = list(families or FAMILIES)
     tasks = [(fam, k, nz, verbose) for fam in families for nz in noise for k in range(draws)]
-    rows = []
 
     def report(row):
-        rows.append(row)
         print(f"{row['family']:20s} noise {row['noise']:.0%} draw {row['draw']}: hidden "
               f"{row['n_hidden']}/{row['n_hidden_true']} exact {row['exact']} error "
               f"{_pct(row['error'])} R^2 {row['r2']:.4f} ({row['wall']:.1f} s)"
               + (f" FAILED {row['failed']}" if "failed" in row else ""), flush=True)
 
-    if jobs > 1:  # processes of one thread each (wall times then include contention)
-        os.environ.setdefault("OMP_NUM_THREADS", "1")
-        with ProcessPoolExecutor(jobs, initializer=_single_threaded) as pool:
-            for row in pool.map(_run, tasks):
-                report(row)
-    else:
-        for task in tasks:
-            report(run_one(*task))
+    rows = run_all(run_one, tasks, report, jobs, out)
     print()
     print(table(rows))
-    if out:
-        Path(out).write_text(json.dumps(rows, indent=1, default=float))
     return rows
 
 

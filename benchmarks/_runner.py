@@ -1,0 +1,39 @@
+"""Running benchmark cases, one after another or in processes of one torch thread."""
+
+from __future__ import annotations
+
+import json
+import os
+from concurrent.futures import ProcessPoolExecutor
+from functools import partial
+from pathlib import Path
+
+
+def _single_threaded():
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _call(run, task):
+    return run(*task)
+
+
+def run_all(run, tasks, report, jobs=1, out=None):
+    """``run(*task)`` for every task, each row passed to ``report`` as it comes (in task
+    order), in ``jobs`` processes of one thread each (wall times then include
+    contention); every row written as JSON to ``out`` when given. Returns the rows."""
+    rows = []
+    if jobs > 1:
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+        with ProcessPoolExecutor(jobs, initializer=_single_threaded) as pool:
+            for row in pool.map(partial(_call, run), tasks):
+                rows.append(row)
+                report(row)
+    else:
+        for task in tasks:
+            rows.append(run(*task))
+            report(rows[-1])
+    if out:
+        Path(out).write_text(json.dumps(rows, indent=1, default=float))
+    return rows
