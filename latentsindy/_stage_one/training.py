@@ -228,7 +228,9 @@ def roughness(track: torch.Tensor, spacing: torch.Tensor | None = None) -> torch
     if spacing is None:
         second = (track[:, 2:] - 2 * track[:, 1:-1] + track[:, :-2]).abs()
     else:
-        h = (spacing / spacing.mean()).to(track.dtype)
+        # steps under a thousandth of the mean count as that: two samples nearly at the
+        # same time share one position in float32 (a zero step, 0/0 slopes otherwise)
+        h = (spacing / spacing.mean()).clamp_min(1e-3).to(track.dtype)
         h = h.reshape(1, -1, *([1] * (track.dim() - 2)))
         slope = first / h
         width = h[:, 1:] + h[:, :-1]

@@ -10,7 +10,7 @@ from latentsindy._stage_one.decisions import (
     restore_absorbed_terms,
     restore_terms,
 )
-from latentsindy._stage_one.training import CoefficientModel
+from latentsindy._stage_one.training import TV_SHARE, CoefficientModel, roughness
 
 
 class _Flat(nn.Module):
@@ -179,3 +179,23 @@ def test_variation_unrelated_to_pruned_terms_is_left_alone():
     assert restore_absorbed_terms(model, theta, xdot, weights, inputs, 0.05,
                                   torch.tensor([False])) == []
     assert model.support.tolist() == [[True, False]]
+
+
+def test_roughness_per_unit_time():
+    """The roughness prior on irregular times: equal spacings give the plain second
+    differences; a parabola sampled at uneven times has the same curvature everywhere
+    (divided differences); two samples at one float32 position (a zero step) give a
+    finite prior, not 0/0."""
+    t = np.linspace(0.0, 1.0, 11)
+    track = torch.tensor((t**2)[None, :, None], dtype=torch.float32)
+    equal = roughness(track, torch.full((10,), 0.1))
+    assert torch.allclose(equal, roughness(track), rtol=1e-5)
+    uneven = np.sort(np.r_[0.0, 1.0, np.random.default_rng(0).uniform(0, 1, 9)])
+    steps = torch.tensor(np.diff(uneven), dtype=torch.float32)
+    parabola = torch.tensor((uneven**2)[None, :, None], dtype=torch.float32)
+    curvature = 2.0 * (steps.mean() ** 2)  # second derivative in units of the mean step
+    expected = 0.5 * curvature * torch.mean((steps[1:] + steps[:-1]) / 2 / steps.mean())
+    tv = roughness(parabola, steps) - expected
+    assert torch.allclose(tv, TV_SHARE * torch.diff(parabola, dim=1).abs().mean(), rtol=1e-4)
+    steps[4] = 0.0
+    assert torch.isfinite(roughness(parabola, steps)).all()
