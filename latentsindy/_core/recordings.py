@@ -71,7 +71,7 @@ def split(x, t, *, gaps: str = "split", what: str = "x_observed"):
     """
     if gaps not in GAPS:
         raise ValueError(f"gaps must be one of {GAPS}; got {gaps!r}.")
-    recordings = _recordings(x, what)
+    recordings = _recordings(x, what, t)
     times = _times(t, recordings)
     segments, seg_times, sources, dropped, missing = [], [], [], [], 0
     for k, (xk, tk) in enumerate(zip(recordings, times, strict=True)):
@@ -80,9 +80,16 @@ def split(x, t, *, gaps: str = "split", what: str = "x_observed"):
         _check_columns(xk, name)
         if bad.any() and gaps == "raise":
             raise ValueError(
-                f"{name} has {int(bad.sum())} row(s) with NaN or infinite values (first at row "
-                f"{int(np.argmax(bad))}); with gaps='raise' they are refused. Use the default "
-                "gaps='split' to drop them and split the recording where they leave a gap.")
+                f"{name} has {int(bad.sum())} row(s) with a NaN or infinite value or time "
+                f"(first at row {int(np.argmax(bad))}); with gaps='raise' they are refused. Use "
+                "the default gaps='split' to drop them and split the recording where they "
+                "leave a gap.")
+        if bad.all():
+            raise ValueError(
+                f"Every row of {name} ({len(bad)} rows) has a NaN or infinite value in some "
+                "state or in its time, and a row with any missing value is dropped: nothing "
+                "is left. States measured at different times need a common time grid "
+                "(interpolate the slower one), or pass only the states measured together.")
         t_name = "t" if len(recordings) == 1 else f"t[{k}]"
         val._one_times(tk, len(tk), t_name, missing=bad)
         rows = np.flatnonzero(~bad)
@@ -128,9 +135,18 @@ def gap_steps(t) -> np.ndarray:
     return np.flatnonzero(steps > GAP_FACTOR * around)
 
 
-def _recordings(x, what):
+def _recordings(x, what, t=None):
     if isinstance(x, list | tuple) and len(x) > 0 and np.ndim(x[0]) <= 1:
-        x = np.asarray(x, dtype=object if val._ragged(x) else None)  # one series
+        if _several_times(t, len(x)) and all(np.ndim(xi) == 1 for xi in x):
+            x = [np.asarray(xi)[:, None] for xi in x]  # single-state recordings
+        elif val._ragged(x) and all(np.ndim(xi) == 1 for xi in x):
+            raise ValueError(
+                f"{what} is a list of {len(x)} 1-D arrays of different lengths "
+                f"{[len(xi) for xi in x][:6]}: read as one series, its rows differ. For "
+                "several recordings of one state pass t as a list of their times as well, "
+                "or give each recording the shape (n_times, 1).")
+        else:
+            x = np.asarray(x, dtype=object if val._ragged(x) else None)  # one series
     if isinstance(x, list | tuple):
         if len(x) == 0:
             raise ValueError(f"{what} is an empty list; pass at least one recording.")
@@ -144,8 +160,17 @@ def _recordings(x, what):
     return recs
 
 
+def _several_times(t, n):
+    """Whether ``t`` is a list of ``n`` > 1 arrays of times (one per recording)."""
+    return (isinstance(t, list | tuple) and n > 1 and len(t) == n
+            and all(np.ndim(tk) == 1 for tk in t))
+
+
 def _times(t, recordings):
     n = len(recordings)
+    if n == 1 and _several_times(t, len(t) if isinstance(t, list | tuple) else 0):
+        raise ValueError(f"t is a list of {len(t)} arrays of times but x is one recording; "
+                         "pass x as a list of as many recordings, or t as one array.")
     if isinstance(t, list | tuple) and n > 1:
         if len(t) != n:
             raise ValueError(f"t is a list of {len(t)} entries but x has {n} recordings.")

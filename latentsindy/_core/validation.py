@@ -101,6 +101,11 @@ def _one_times(t, n_times: int, what: str, missing=None) -> np.ndarray:
     if t is None:
         raise TypeError(f"{what} is required: a sample spacing (float) or an array of times.")
     if np.ndim(t) == 0:
+        kind = np.asarray(t).dtype.kind
+        if kind not in "iuf":
+            raise TypeError(f"The sample spacing {what} must be a positive real number; got "
+                            f"{t!r} ({type(t).__name__}). Pass a float, or an array of "
+                            "sample times.")
         dt = float(t)
         if not np.isfinite(dt) or dt <= 0:
             raise ValueError(f"The sample spacing {what} must be a positive number; got {t!r}.")

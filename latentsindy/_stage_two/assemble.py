@@ -145,12 +145,24 @@ def _term_text(cell, system, rename, names_map):
 
 
 def _weak(found, system, rename, names_map):
-    """A sentence per term the data support only weakly."""
-    return tuple(
-        f"the data support {_term_text(cell, system, rename, names_map)} only weakly "
-        f"(dropping it raises the misfit by {change:.3g} residual variances, under the "
-        f"{bar:.3g} that very strong evidence needs): it may stand for a small systematic "
-        "error rather than part of the law" for cell, change, bar in found)
+    """A sentence per term the data support only weakly, or whose support could not be
+    checked."""
+    out = []
+    for cell, change, bar in found:
+        if cell is None:
+            out.append("the support of the terms could not be checked (refitting without "
+                       "a term blew up): they may include terms the data do not need")
+        elif not np.isfinite(change):
+            out.append(f"the support of {_term_text(cell, system, rename, names_map)} could "
+                       "not be checked (refitting without it failed): it may stand for a "
+                       "small systematic error rather than part of the law")
+        else:
+            out.append(
+                f"the data support {_term_text(cell, system, rename, names_map)} only weakly "
+                f"(dropping it raises the misfit by {change:.3g} residual variances, under "
+                f"the {bar:.3g} that very strong evidence needs): it may stand for a small "
+                "systematic error rather than part of the law")
+    return tuple(out)
 
 
 def _exchanges(moves, system, rename, names_map):

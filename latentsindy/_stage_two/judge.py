@@ -224,8 +224,8 @@ def weakly_supported_terms(verdict: Verdict):
         return []
     try:
         return weak_terms(verdict.problem, verdict.fit, verdict.candidates)
-    except BlowUp:
-        return []
+    except BlowUp:  # not checked is a doubt, not a pass
+        return [(None, np.nan, np.nan)]
 
 
 def rank(verdicts):

@@ -28,6 +28,7 @@ import scipy.sparse.linalg as spla
 
 from .field import ParametricSystem
 from .refine import Fit, Problem
+from .shooting import BlowUp
 
 MAX_STEPS = 12
 MAX_ATTEMPTS = 3  # exact refits tried per step before giving up
@@ -111,19 +112,32 @@ def ambiguities(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS):
 def weak_terms(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS):
     """Free coefficients of ``fit`` whose removal (the others refitted exactly) raises
     the misfit by less than the price of a term plus ``EVIDENCE`` residual variances.
-    Returns [(cell, change, bar)], at most ``limit`` refits, weakest first."""
+
+    Fails safe: the ``limit`` drops predicted cheapest are refitted exactly; a further
+    drop predicted under the bar counts as weak with its predicted change, one whose
+    refit fails as weak with change NaN (not checked; a refit that blows up says the
+    system needs the term). Returns
+    [(cell, change, bar)], weakest first."""
     s2 = max(fit.residual_variance, 1.0)
     bar = _price(problem, fit, candidates) + EVIDENCE
     model = _Quadratic(problem, fit, np.zeros_like(fit.system.free))
     drops = sorted((m for m in model.moves(0.0, s2) if m[1][0] == "drop"),
                    key=lambda m: -m[0])
     found = []
-    for gain, move, keep in drops[:limit]:
+    for k, (gain, move, keep) in enumerate(drops):
         if -gain >= bar:
             break
-        trial = _refit(problem, fit, model, keep)
-        change = np.inf if trial is None else (trial.data_cost - fit.data_cost) / s2
-        if change < bar:
+        if k >= limit:  # not refitted: the prediction stands
+            found.append((move[1], float(-gain), float(bar)))
+            continue
+        try:
+            trial = _exact_refit(problem, fit, model, keep)
+            change = (trial.data_cost - fit.data_cost) / s2
+        except BlowUp:  # without the term the system does not stay bounded: needed
+            change = np.inf
+        except Exception:  # noqa: BLE001 - the refit failed: not checked, a doubt
+            change = np.nan
+        if not change >= bar:  # NaN (refit failed) is a doubt too
             found.append((move[1], float(change), float(bar)))
     return found
 
@@ -139,6 +153,15 @@ def _bic(fit, s2, price):
 
 
 def _refit(problem, fit, model, keep):
+    """Exact fit with the coefficients ``keep`` (over the model's cells) free; None when
+    it fails."""
+    try:
+        return _exact_refit(problem, fit, model, keep)
+    except Exception:  # noqa: BLE001 - a move whose system blows up is not taken
+        return None
+
+
+def _exact_refit(problem, fit, model, keep):
     """Exact fit with the coefficients ``keep`` (over the model's cells) free."""
     system = fit.system
     free = np.zeros_like(system.free)
@@ -148,10 +171,7 @@ def _refit(problem, fit, model, keep):
         if on or system.free[cell]:
             coef[cell] = value
     new = ParametricSystem(system.state_names, system.n_observed, system.features, coef, free)
-    try:
-        return problem.fit(new, fit.starts)
-    except Exception:  # noqa: BLE001 - a move whose system blows up is not taken
-        return None
+    return problem.fit(new, fit.starts)
 
 
 class _Quadratic:

@@ -56,7 +56,7 @@ def test_several_recordings_of_different_rates():
 def test_gaps_raise_refuses_missing_values_and_gaps():
     x, t = series(400)
     x[200, 0] = np.nan
-    with pytest.raises(ValueError, match=r"1 row\(s\) with NaN.*row 200.*gaps='raise'"):
+    with pytest.raises(ValueError, match=r"1 row\(s\) with a NaN.*row 200.*gaps='raise'"):
         recordings.split(x, t, gaps="raise")
     x, t = series(400)
     t[200:] += 100.0
@@ -127,3 +127,42 @@ def test_datetime_times_are_refused():
     t = np.arange(100).astype("datetime64[s]")
     with pytest.raises(TypeError, match="real sample times.*datetime"):
         discover(x, t=t)
+
+
+def test_rows_all_missing_somewhere():
+    """Two states logged alternately: every row misses one, nothing is left."""
+    x, t = series(100)
+    x[::2, 0] = np.nan
+    x[1::2, 1] = np.nan
+    with pytest.raises(ValueError, match=r"Every row of x_observed \(100 rows\) has a NaN.*"
+                                         "common time grid"):
+        recordings.split(x, t)
+
+
+def test_a_list_of_one_state_recordings_with_their_times():
+    a, ta = series(300, seed=1)
+    b, tb = series(200, seed=2)
+    segs, _, use = recordings.split([a[:, 0], b[:, 0]], [ta, tb])
+    assert [s.shape for s in segs] == [(300, 1), (200, 1)]
+    assert (use.recordings, use.samples) == (2, 500)
+
+
+def test_a_ragged_list_of_one_state_recordings_without_their_times():
+    a, _ = series(300, seed=1)
+    with pytest.raises(ValueError, match=r"list of 2 1-D arrays of different lengths "
+                                         r"\[300, 200\].*t as a list"):
+        recordings.split([a[:, 0], a[:200, 0]], 0.1)
+
+
+def test_several_time_arrays_for_one_recording():
+    x, t = series(100)
+    with pytest.raises(ValueError, match="t is a list of 2 arrays of times but x is one "
+                                         "recording"):
+        recordings.split(x, [t, t])
+
+
+@pytest.mark.parametrize("dt", [True, "0.1", 1j])
+def test_a_spacing_that_is_not_a_real_number(dt):
+    x, _ = series(100)
+    with pytest.raises(TypeError, match="sample spacing t must be a positive real number"):
+        recordings.split(x, dt)

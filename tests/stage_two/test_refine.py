@@ -11,13 +11,14 @@ import sympy as sp
 import torch
 
 from latentsindy import systems
-from latentsindy._stage_two.assemble import doubts
+from latentsindy._stage_two import terms as terms_module
+from latentsindy._stage_two.assemble import _weak, doubts
 from latentsindy._stage_two.field import FeatureMap, ParametricSystem
 from latentsindy._stage_two.judge import rank
 from latentsindy._stage_two.refine import Problem, cross_validate
 from latentsindy._stage_two.result import Refinement, Term
 from latentsindy._stage_two.shooting import BlowUp
-from latentsindy._stage_two.terms import AMBIGUITY, ambiguities, select_terms
+from latentsindy._stage_two.terms import AMBIGUITY, ambiguities, select_terms, weak_terms
 
 X, Y, Z, H = sp.symbols("x y z h", real=True)
 A, B, G, D = 1.0, 0.1, 1.5, 0.075
@@ -213,3 +214,57 @@ def test_ambiguities_report_a_term_the_data_cannot_tell_from_another():
     assert abs(found[0][1]) < AMBIGUITY
     candidates[1, 5] = False
     assert ambiguities(problem, fit, candidates) == []
+
+
+def test_weak_terms_fail_safe():
+    """The exact LV hidden law: every term strongly supported (no weak term). A refit
+    that fails is not a pass: each term whose removal is predicted cheap enough to need
+    a refit comes back with change NaN; a refit that blows up says the term is needed."""
+    data, guesses = lv_problem(0.01)
+    coef = np.zeros((2, 5))
+    coef[0, 0] = 1.0
+    coef[1] = TRUTH_ROW
+    free = np.zeros((2, 5), dtype=bool)
+    free[1, :4] = True
+    problem = Problem(ParametricSystem(("x", "h"), 1, LV_FEATURES, coef, free), [data.t],
+                      [data.x[:, :1]], guesses)
+    fit = problem.fit()
+    candidates = np.zeros_like(free)
+    candidates[1, 4] = True
+    assert weak_terms(problem, fit, candidates) == []
+    # a bar so high that every drop is predicted under it: each one is refitted
+    original = terms_module.EVIDENCE
+    try:
+        terms_module.EVIDENCE = 1e12
+        checked = weak_terms(problem, fit, candidates)
+        assert len(checked) == 4 and all(np.isfinite(c) for _, c, _ in checked)
+
+        def fails(*args):
+            raise np.linalg.LinAlgError("singular")
+
+        def blows(*args):
+            raise BlowUp("left the bounded region")
+
+        terms_module._exact_refit, saved = fails, terms_module._exact_refit
+        try:
+            failed = weak_terms(problem, fit, candidates)
+            assert len(failed) == 4
+            assert all(np.isnan(c) for _, c, _ in failed[:3])  # refitted: failed
+            assert np.isfinite(failed[3][1])  # beyond the refit limit: predicted change
+            terms_module._exact_refit = blows
+            blown = weak_terms(problem, fit, candidates)
+            assert len(blown) == 1 and blown[0][0] == failed[3][0]  # only the unrefitted
+        finally:
+            terms_module._exact_refit = saved
+    finally:
+        terms_module.EVIDENCE = original
+
+
+def test_weak_term_sentences_say_what_was_not_checked():
+    system = ParametricSystem(("x", "h"), 1, LV_FEATURES, np.zeros((2, 5)),
+                              np.zeros((2, 5), dtype=bool))
+    found = [((1, 1), 3.0, 20.0), ((1, 2), math.nan, 20.0), (None, math.nan, math.nan)]
+    weak, failed, blown = _weak(found, system, {}, {})
+    assert "support 1 in dh/dt only weakly (dropping it raises the misfit by 3" in weak
+    assert "support of h in dh/dt could not be checked (refitting without it failed)" in failed
+    assert "could not be checked (refitting without a term blew up)" in blown
