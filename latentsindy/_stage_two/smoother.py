@@ -174,8 +174,9 @@ def _knots(n_times, spacing, where=None):
     interpolation matrix; ``where`` are the sample times in mean steps (None: uniform,
     the sample indices), so knots are equally spaced in time for any sampling."""
     where = np.arange(n_times) if where is None else where
-    knots = np.unique(np.concatenate([np.arange(0, where[-1] + 1, max(1, spacing)),
-                                      [where[-1]]]))
+    grid = np.arange(0, where[-1] + 1, max(1, spacing))
+    # none past the last sample (irregular positions end a rounding error short of n - 1)
+    knots = np.unique(np.concatenate([grid[grid <= where[-1]], [where[-1]]]))
     j = np.clip(np.searchsorted(knots, where, side="right") - 1, 0, len(knots) - 2)
     w = (where - knots[j]) / (knots[j + 1] - knots[j])
     rows = np.repeat(np.arange(n_times), 2)
