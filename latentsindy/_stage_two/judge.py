@@ -19,6 +19,7 @@ import sympy as sp
 
 from .._core.library import feature_expressions
 from .field import ParametricSystem
+from .first_integral import integrated_proposal, integrated_system
 from .gauge import shifted_guesses, shifted_proposal, shifted_system
 from .hypotheses import Context, Proposal, close
 from .refine import Fit, Problem, RefineOptions, cross_validate
@@ -180,8 +181,13 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None):
         else:
             verdicts.append(_unscored(t, "rejected"))
     ordered, uncertain = rank(verdicts)
-    shifted = _shifted(ordered[0], ctx, options) if ordered and ordered[0].scored else None
-    return rank(verdicts + [shifted]) if shifted is not None else (ordered, uncertain)
+    if ordered and ordered[0].scored:
+        # the winner restated: one hidden state where its rate law has a first integral,
+        # or shifted to absorb its observed terms
+        restated = _integrated(ordered[0], options) or _shifted(ordered[0], ctx, options)
+        if restated is not None:
+            return rank(verdicts + [restated])
+    return ordered, uncertain
 
 
 def _shifted(verdict: Verdict, ctx: Context, options) -> Verdict | None:
@@ -199,6 +205,25 @@ def _shifted(verdict: Verdict, ctx: Context, options) -> Verdict | None:
     proposal = shifted_proposal(verdict.proposal, dropped, guesses, system.n_observed)
     try:
         problem = Problem(system, ctx.times, ctx.observed, guesses, options)
+        trial = _Trial(proposal, problem, problem.fit(system), np.zeros_like(system.free),
+                       verdict.initial_misfit)
+    except BlowUp:
+        return None
+    return _finish(trial)
+
+
+def _integrated(verdict: Verdict, options) -> Verdict | None:
+    """The chosen hidden state and rate as one hidden state, where the rate's law is the
+    derivative of a first-order law (:mod:`.first_integral`), refined, its terms
+    selected and scored; None if there is none or it cannot be integrated."""
+    found = integrated_system(verdict)
+    if found is None:
+        return None
+    system, guesses = found
+    proposal = integrated_proposal(verdict.proposal, guesses, system.n_observed)
+    problem = verdict.problem
+    try:
+        problem = Problem(system, problem.times, problem.observed, guesses, options)
         trial = _Trial(proposal, problem, problem.fit(system), np.zeros_like(system.free),
                        verdict.initial_misfit)
     except BlowUp:
