@@ -12,8 +12,10 @@ The modules, in the order :func:`discover_hidden` runs them:
 3. ``judge``: each proposal's closed system (``field``) is refined by integration
    (``refine`` on ``shooting``: multiple shooting, Levenberg-Marquardt), its terms
    selected on the integrated likelihood (``terms``), then scored on held-out segments;
-   ``rank`` picks the sparsest system within one standard error of the best, whose
-   hidden states ``gauge`` also tries shifted by observed functions;
+   ``rank`` picks the sparsest system within one standard error of the best, which is
+   also tried restated: a hidden state and its rate as one hidden state where the
+   rate's law has a first integral (``first_integral``), or its hidden states shifted
+   by observed functions (``gauge``);
 4. ``assemble``: the winner, its alternatives and its doubts become the result,
    ``result.HiddenDiscovery`` (with ``figures`` for its plot).
 """
