@@ -134,6 +134,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
         alternatives, unsure, refinement, tuple(notes), list(ctx.times), list(ctx.observed),
         hidden, [np.asarray(h) for h in best.proposal.hidden], trajectories[0][0].copy(),
         doubts(score, score_se, refinement, terms, names)
+        + _segment_constants(terms, names, system.n_observed, trajectories, stds)
         + _exchanges(exchangeable_terms(best), system, rename, names_map)
         + _weak(weakly_supported_terms(best), system, rename, names_map))
 
@@ -204,6 +205,34 @@ def doubts(score, score_se, refinement, terms, hidden):
             f"{len(weak)} hidden-equation coefficient(s) within {SIGNIFICANCE:g} standard "
             f"errors of zero ({', '.join(weak[:4])}{', ...' if len(weak) > 4 else ''}): "
             "the data do not determine them")
+    return tuple(found)
+
+
+def _segment_constants(terms, names, n_observed, trajectories, stds):
+    """A hidden state without dynamics (``dh/dt = 0``) is one constant per segment: when
+    those constants differ between segments beyond their standard errors, the segments
+    do not share one law (each gets its own parameter). A doubt per such state."""
+    if len(trajectories) < 2:
+        return ()
+    moving = {t.state for t in terms if t.value != 0}
+    found = []
+    for a, name in enumerate(names):
+        if name in moving:
+            continue
+        col = n_observed + a
+        values = np.array([tr[0, col] for tr in trajectories])
+        errors = np.array([sd[0, col] for sd in stds])
+        spread = np.abs(values[:, None] - values[None, :])
+        bound = SIGNIFICANCE * np.sqrt(errors[:, None] ** 2 + errors[None, :] ** 2)
+        if np.any(spread > np.where(np.isfinite(bound), bound, 0.0)
+                  + 1e-9 * np.max(np.abs(values))):
+            found.append(
+                f"{name} has no dynamics of its own but takes a different constant value in "
+                f"each segment ({', '.join(f'{v:.4g}' for v in values[:5])}"
+                f"{', ...' if len(values) > 5 else ''}): the segments do not share one law "
+                "(each has its own parameter); the system may describe each segment's trend "
+                "rather than the dynamics. Longer recordings, or a hidden state with an "
+                "equation of its own, are needed")
     return tuple(found)
 
 

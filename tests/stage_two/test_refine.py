@@ -12,7 +12,7 @@ import torch
 
 from latentsindy import systems
 from latentsindy._stage_two import terms as terms_module
-from latentsindy._stage_two.assemble import _weak, doubts
+from latentsindy._stage_two.assemble import _segment_constants, _weak, doubts
 from latentsindy._stage_two.field import FeatureMap, ParametricSystem
 from latentsindy._stage_two.judge import rank
 from latentsindy._stage_two.refine import Problem, cross_validate
@@ -268,3 +268,23 @@ def test_weak_term_sentences_say_what_was_not_checked():
     assert "support 1 in dh/dt only weakly (dropping it raises the misfit by 3" in weak
     assert "support of h in dh/dt could not be checked (refitting without it failed)" in failed
     assert "could not be checked (refitting without a term blew up)" in blown
+
+
+def test_a_constant_hidden_state_that_differs_between_segments_is_a_doubt():
+    """dr/dt = 0 makes r one parameter per segment: the segments then do not share one
+    law. Equal constants (within two standard errors), or one segment, pass."""
+    h = sp.Symbol("r", real=True)
+    terms = (Term("x", h, 1.0, math.nan, True),)  # r carries x; dr/dt = 0
+
+    def segments(values, error=0.01):
+        trs = [np.column_stack([np.zeros(5), np.full(5, v)]) for v in values]
+        return trs, [np.full((5, 2), error) for _ in values]
+
+    assert _segment_constants(terms, ["r"], 1, *segments([0.5, 0.8, 1.1])) != ()
+    found = _segment_constants(terms, ["r"], 1, *segments([0.5, 0.8, 1.1]))[0]
+    assert "r has no dynamics of its own but takes a different constant value" in found
+    assert "0.5, 0.8, 1.1" in found
+    assert _segment_constants(terms, ["r"], 1, *segments([0.5, 0.51, 0.5])) == ()
+    assert _segment_constants(terms, ["r"], 1, *segments([0.5])) == ()
+    moving = terms + (Term("r", h, -0.3, 0.01, False),)
+    assert _segment_constants(moving, ["r"], 1, *segments([0.5, 0.8])) == ()
