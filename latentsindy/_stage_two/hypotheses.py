@@ -134,12 +134,9 @@ def propose(ctx: Context, support, varying_pairs, series):
     for i in equations:
         if not ctx.free_rows[i]:
             continue
-        # the other equations keep stage one's terms as constants; each carrier also in
-        # its reduced gauge (stage one's x^2 and x^3 beside the carrier x are x h)
-        carriers = [evaluate(single_term(n_obs, n_feat, i, k, support), ctx, "carrier")
-                    for k in range(n_feat)]
-        trials = _usable(carriers + [q for q in (gauge_reduced(p, ctx) for p in carriers)
-                                     if q is not None])
+        # the other equations keep stage one's terms as constants
+        trials = _usable([evaluate(single_term(n_obs, n_feat, i, k, support), ctx, "carrier")
+                          for k in range(n_feat)])
         fitting = min(trials, key=lambda p: p.fit.misfit)
         for p in [trials[0], fitting] + trials[1:2]:
             add(p)
