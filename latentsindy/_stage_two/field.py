@@ -74,6 +74,46 @@ class ParametricSystem:
         return out
 
 
+_TINY = 1e-12  # relative size below which a coefficient of a derived law is zero
+
+
+def polynomial_rows(laws, state_names):
+    """Each state's law (a polynomial sympy expression, ``laws[name]``) as
+    ``{monomial: coefficient}``, coefficients below ``_TINY`` of the row's largest left
+    out; None if a law is not a polynomial in the states."""
+    symbols = [sp.Symbol(n, real=True) for n in state_names]
+    rows = []
+    for name in state_names:
+        try:
+            terms = sp.Poly(laws[name], *symbols).terms()
+        except sp.PolynomialError:
+            return None
+        scale = max((abs(float(c)) for _, c in terms), default=0.0)
+        rows.append({sp.Mul(*[s**e for s, e in zip(symbols, powers, strict=True)]): float(c)
+                     for powers, c in terms if abs(float(c)) > _TINY * scale})
+    return rows
+
+
+def system_from_rows(state_names, n_observed, rows, template, *, leading=(), kept_rows):
+    """A ParametricSystem from ``polynomial_rows``: features ``leading`` first, then
+    the others in sympy's order; every coefficient is free except, in the first
+    ``kept_rows`` rows, those ``template`` holds fixed and nonzero (a hidden state's
+    scale stays the coefficient of its term)."""
+    old = {f: c for c, f in enumerate(template.features)}
+    features = list(leading) + sorted({f for row in rows for f in row} - set(leading),
+                                      key=sp.default_sort_key)
+    coef = np.zeros((len(rows), len(features)))
+    free = np.zeros_like(coef, dtype=bool)
+    for i, row in enumerate(rows):
+        for f, c in row.items():
+            col = features.index(f)
+            coef[i, col] = c
+            fixed = (i < kept_rows and f in old and not template.free[i, old[f]]
+                     and template.coef[i, old[f]] != 0)
+            free[i, col] = not fixed
+    return ParametricSystem(tuple(state_names), n_observed, tuple(features), coef, free)
+
+
 class FeatureMap:
     """Features phi(y) and their gradients for batches of states, in torch."""
 

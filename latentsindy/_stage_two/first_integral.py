@@ -22,9 +22,7 @@ import numpy as np
 import sympy as sp
 
 from .._core.library import feature_expressions
-from .field import ParametricSystem
-
-_TINY = 1e-12  # relative size below which a coefficient is zero
+from .field import ParametricSystem, polynomial_rows, system_from_rows
 
 
 def integrated_system(verdict):
@@ -58,7 +56,10 @@ def integrated_system(verdict):
                                np.zeros((0, 0), dtype=bool))
     laws = {s.name: rhs[s.name] for s in symbols[:n_obs]}
     laws[h.name] = big_g + sp.Float(c)
-    new = _assemble(reduced, laws, system)
+    rows = polynomial_rows(laws, reduced.state_names)
+    if rows is None:
+        return None
+    new = system_from_rows(reduced.state_names, n_obs, rows, system, kept_rows=n_obs)
     guesses = [tr[:, :n_obs + 1].copy() for tr in trajectories]
     return new, guesses
 
@@ -78,28 +79,3 @@ def _closure_degree(p):
     exprs = feature_expressions(library, list(p.closure.feature_names), names)
     powers = [sp.Poly(e, *sp.symbols(names, real=True)).degree_list() for e in exprs]
     return max((max(d) for d in powers if sum(d) == max(d)), default=0)
-
-
-def _assemble(reduced, laws, original):
-    """A ParametricSystem over ``reduced``'s states from polynomial laws; the observed
-    equations keep ``original``'s fixed coefficients fixed."""
-    symbols = reduced.symbols
-    rows = []
-    for name in reduced.state_names:
-        terms = sp.Poly(laws[name], *symbols).terms()
-        scale = max((abs(float(c)) for _, c in terms), default=0.0)
-        rows.append({sp.Mul(*[s**e for s, e in zip(symbols, powers, strict=True)]): float(c)
-                     for powers, c in terms if abs(float(c)) > _TINY * scale})
-    old = {f: c for c, f in enumerate(original.features)}
-    features = sorted({f for row in rows for f in row}, key=sp.default_sort_key)
-    coef = np.zeros((len(rows), len(features)))
-    free = np.zeros_like(coef, dtype=bool)
-    for i, row in enumerate(rows):
-        for f, c in row.items():
-            col = features.index(f)
-            coef[i, col] = c
-            fixed = (i < original.n_observed and f in old
-                     and not original.free[i, old[f]] and original.coef[i, old[f]] != 0)
-            free[i, col] = not fixed
-    return ParametricSystem(reduced.state_names, reduced.n_observed, tuple(features), coef,
-                            free)

@@ -23,9 +23,7 @@ import numpy as np
 import sympy as sp
 
 from .._core.library import feature_expressions
-from .field import ParametricSystem
-
-_TINY = 1e-12  # relative size below which a coefficient of the shifted system is zero
+from .field import polynomial_rows, system_from_rows
 
 
 def shifted_system(verdict, ctx):
@@ -77,33 +75,11 @@ def _closure_features(p, ctx, system):
 def _assemble(system, rhs, closure):
     """A ParametricSystem from polynomial right-hand sides; None if a hidden equation
     needs a term outside the closure library."""
-    symbols = system.symbols
-    rows = []
-    for i, name in enumerate(system.state_names):
-        try:
-            terms = sp.Poly(rhs[name], *symbols).terms()
-        except sp.PolynomialError:
-            return None
-        scale = max((abs(float(c)) for _, c in terms), default=0.0)
-        row = {}
-        for powers, c in terms:
-            if abs(float(c)) > _TINY * scale:
-                row[sp.Mul(*[s**e for s, e in zip(symbols, powers, strict=True)])] = float(c)
-        if i >= system.n_observed and not set(row) <= closure:
-            return None
-        rows.append(row)
-    old = {f: c for c, f in enumerate(system.features)}
-    features = list(system.features) + sorted({f for r in rows for f in r} - set(old),
-                                              key=sp.default_sort_key)
-    coef = np.zeros((len(rows), len(features)))
-    free = np.zeros_like(coef, dtype=bool)
-    for i, row in enumerate(rows):
-        for f, c in row.items():
-            col = features.index(f)
-            coef[i, col] = c
-            fixed = f in old and not system.free[i, old[f]] and system.coef[i, old[f]] != 0
-            free[i, col] = not fixed
-    return ParametricSystem(system.state_names, system.n_observed, tuple(features), coef, free)
+    rows = polynomial_rows(rhs, system.state_names)
+    if rows is None or any(not set(row) <= closure for row in rows[system.n_observed:]):
+        return None
+    return system_from_rows(system.state_names, system.n_observed, rows, system,
+                            leading=system.features, kept_rows=len(rows))
 
 
 def shifted_guesses(trajectories, system, shifts):

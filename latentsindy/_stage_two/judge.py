@@ -203,13 +203,7 @@ def _shifted(verdict: Verdict, ctx: Context, options) -> Verdict | None:
     if guesses is None:
         return None
     proposal = shifted_proposal(verdict.proposal, dropped, guesses, system.n_observed)
-    try:
-        problem = Problem(system, ctx.times, ctx.observed, guesses, options)
-        trial = _Trial(proposal, problem, problem.fit(system), np.zeros_like(system.free),
-                       verdict.initial_misfit)
-    except BlowUp:
-        return None
-    return _finish(trial)
+    return _restated(proposal, system, guesses, (ctx.times, ctx.observed), verdict, options)
 
 
 def _integrated(verdict: Verdict, options) -> Verdict | None:
@@ -221,9 +215,15 @@ def _integrated(verdict: Verdict, options) -> Verdict | None:
         return None
     system, guesses = found
     proposal = integrated_proposal(verdict.proposal, guesses, system.n_observed)
-    problem = verdict.problem
+    data = (verdict.problem.times, verdict.problem.observed)
+    return _restated(proposal, system, guesses, data, verdict, options)
+
+
+def _restated(proposal, system, guesses, data, verdict, options) -> Verdict | None:
+    """``verdict``'s system restated as ``system`` (from ``guesses``), refined, its terms
+    selected and scored on ``data`` (times, observed); None if it cannot be integrated."""
     try:
-        problem = Problem(system, problem.times, problem.observed, guesses, options)
+        problem = Problem(system, *data, guesses, options)
         trial = _Trial(proposal, problem, problem.fit(system), np.zeros_like(system.free),
                        verdict.initial_misfit)
     except BlowUp:
