@@ -7,6 +7,7 @@ import math
 import numpy as np
 import sympy as sp
 
+from .first_integral import integrated_system
 from .judge import build, exchangeable_terms, weakly_supported_terms
 from .result import Alternative, HiddenDiscovery, HiddenState, Refinement, Term
 
@@ -135,6 +136,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
         hidden, [np.asarray(h) for h in best.proposal.hidden], trajectories[0][0].copy(),
         doubts(score, score_se, refinement, terms, names)
         + _segment_constants(terms, names, system.n_observed, trajectories, stds)
+        + _first_integral(best, names)
         + _exchanges(exchangeable_terms(best), system, rename, names_map)
         + _weak(weakly_supported_terms(best), system, rename, names_map))
 
@@ -209,9 +211,10 @@ def doubts(score, score_se, refinement, terms, hidden):
 
 
 def _segment_constants(terms, names, n_observed, trajectories, stds):
-    """A hidden state without dynamics (``dh/dt = 0``) is one constant per segment: when
-    those constants differ between segments beyond their standard errors, the segments
-    do not share one law (each gets its own parameter). A doubt per such state."""
+    """A hidden state without dynamics (``dh/dt = 0``) is one constant per recording (or
+    gap-separated segment): when those constants differ beyond their standard errors,
+    the recordings do not share one law (each gets its own parameter). A doubt per such
+    state; also one when a constant cannot be read (a trajectory blew up)."""
     if len(trajectories) < 2:
         return ()
     moving = {t.state for t in terms if t.value != 0}
@@ -221,19 +224,40 @@ def _segment_constants(terms, names, n_observed, trajectories, stds):
             continue
         col = n_observed + a
         values = np.array([tr[0, col] for tr in trajectories])
+        if not np.all(np.isfinite(values)):
+            found.append(
+                f"{name} has no dynamics of its own and its constant could not be read in "
+                "every recording (an integration blew up): whether the recordings share "
+                "one law was not checked")
+            continue
         errors = np.array([sd[0, col] for sd in stds])
         spread = np.abs(values[:, None] - values[None, :])
         bound = SIGNIFICANCE * np.sqrt(errors[:, None] ** 2 + errors[None, :] ** 2)
         if np.any(spread > np.where(np.isfinite(bound), bound, 0.0)
                   + 1e-9 * np.max(np.abs(values))):
             found.append(
-                f"{name} has no dynamics of its own but takes a different constant value in "
-                f"each segment ({', '.join(f'{v:.4g}' for v in values[:5])}"
-                f"{', ...' if len(values) > 5 else ''}): the segments do not share one law "
-                "(each has its own parameter); the system may describe each segment's trend "
+                f"{name} has no dynamics of its own but takes different constant values in "
+                f"different recordings or segments ({', '.join(f'{v:.4g}' for v in values[:5])}"
+                f"{', ...' if len(values) > 5 else ''}): they do not share one law (each "
+                "has its own parameter); the system may describe each recording's trend "
                 "rather than the dynamics. Longer recordings, or a hidden state with an "
                 "equation of its own, are needed")
     return tuple(found)
+
+
+def _first_integral(verdict, names):
+    """A doubt when the winner's rate law has a first integral (:mod:`.first_integral`):
+    the smaller first-order system with one constant was judged and not preferred, so
+    the conserved quantity differs between recordings or segments, or the fit is not
+    settled; either way the second hidden state is not shown to be dynamics."""
+    if integrated_system(verdict) is None:
+        return ()
+    h, r = names[0], names[1]
+    return (f"d{r}/dt is the time derivative of a first-order law for {h} "
+            f"(d{h}/dt = G({h}) + c, with c = {r} - G({h}) conserved), yet that smaller "
+            "system was not preferred: c differs between recordings or segments, or the "
+            f"fit is not settled; {r} may stand for a constant per recording rather than "
+            "dynamics",)
 
 
 def _static_notes(terms, names):

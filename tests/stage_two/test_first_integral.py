@@ -7,6 +7,7 @@ import numpy as np
 import pysindy as ps
 import sympy as sp
 
+from latentsindy._stage_two.assemble import _first_integral
 from latentsindy._stage_two.field import ParametricSystem
 from latentsindy._stage_two.first_integral import integrated_proposal, integrated_system
 
@@ -77,3 +78,26 @@ def test_the_proposal_is_first_order():
     p = integrated_proposal(fields(**vars(verdict.proposal)), guesses, 2)
     assert p.order == 1 and p.origin.endswith(", integrated")
     np.testing.assert_array_equal(p.hidden[0], tr[:, 2:3])
+
+
+def test_a_non_polynomial_observed_law_has_no_first_integral_restatement():
+    """sin(y) in an observed equation: the restated system cannot be built as
+    polynomial rows, so there is none (the judge goes on without it)."""
+    verdict, _ = rate_verdict({R: A, H * R: 2 * B})
+    system = verdict.system
+    features = system.features[:-1] + (sp.sin(Y),)
+    coef = system.coef.copy()
+    coef[0, -1] = 0.1
+    free = system.free.copy()
+    free[0, -1] = True
+    verdict.system = ParametricSystem(system.state_names, 2, features, coef, free)
+    assert integrated_system(verdict) is None
+
+
+def test_a_winner_with_a_first_integral_is_a_doubt():
+    verdict, _ = rate_verdict({R: A, H * R: 2 * B})
+    (doubt,) = _first_integral(verdict, ["h", "h_rate"])
+    assert "dh_rate/dt is the time derivative of a first-order law for h" in doubt
+    assert "not preferred" in doubt
+    verdict, _ = rate_verdict({R: A, R * X: 0.2})
+    assert _first_integral(verdict, ["h", "h_rate"]) == ()

@@ -282,9 +282,11 @@ def test_a_constant_hidden_state_that_differs_between_segments_is_a_doubt():
 
     assert _segment_constants(terms, ["r"], 1, *segments([0.5, 0.8, 1.1])) != ()
     found = _segment_constants(terms, ["r"], 1, *segments([0.5, 0.8, 1.1]))[0]
-    assert "r has no dynamics of its own but takes a different constant value" in found
+    assert "r has no dynamics of its own but takes different constant values" in found
     assert "0.5, 0.8, 1.1" in found
     assert _segment_constants(terms, ["r"], 1, *segments([0.5, 0.51, 0.5])) == ()
     assert _segment_constants(terms, ["r"], 1, *segments([0.5])) == ()
     moving = terms + (Term("r", h, -0.3, 0.01, False),)
     assert _segment_constants(moving, ["r"], 1, *segments([0.5, 0.8])) == ()
+    (blown,) = _segment_constants(terms, ["r"], 1, *segments([0.5, np.nan, 0.5]))
+    assert "its constant could not be read in every recording" in blown
