@@ -35,6 +35,11 @@ class ClosureFit:
         averaged over the hidden equations.
     table : list of (threshold, n_terms, cv_error)
         Every distinct support along the path.
+    fuller : ndarray or None
+        Coefficients (integral-form refit) of the support with the lowest held-out
+        error, when the one-standard-error rule chose a sparser one; None otherwise.
+    fuller_error : float
+        That support's held-out error (NaN without one).
     """
 
     coef: np.ndarray
@@ -42,6 +47,8 @@ class ClosureFit:
     library: object
     cv_error: float
     table: list
+    fuller: np.ndarray | None = None
+    fuller_error: float = float("nan")
 
 
 def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, observed_names,
@@ -93,7 +100,11 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
             chosen = _one_standard_error(weak)
     coef = refit_integral(chosen[4] != 0, thetas, hidden, times, span)
     table = [(c[0], c[1], c[2]) for c in candidates]
-    return ClosureFit(coef, names, lib, chosen[2], table)
+    best = min(candidates, key=lambda c: c[2])
+    if best[1] <= chosen[1] or chosen[2] - best[2] <= EXACT:
+        return ClosureFit(coef, names, lib, chosen[2], table)
+    fuller = refit_integral(best[4] != 0, thetas, hidden, times, span)
+    return ClosureFit(coef, names, lib, chosen[2], table, fuller, best[2])
 
 
 def _interior(n_traj, lengths, edges):

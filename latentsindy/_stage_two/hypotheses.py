@@ -129,24 +129,41 @@ def propose(ctx: Context, support, varying_pairs, series):
         first.append(p) if not first else None
         add(p)
         add(improve_constants(p, ctx))
+    reduced = {}  # gauge_reduced, once per structure
+
+    def in_reduced_gauge(p):
+        key = (p.structure.key(), p.order)
+        if key not in reduced:
+            reduced[key] = gauge_reduced(p, ctx)
+        return reduced[key]
+
     equations = sorted({i for i, _ in varying_pairs})
     best_carrier = {}
     for i in equations:
         if not ctx.free_rows[i]:
             continue
         # the other equations keep stage one's terms as constants
-        trials = _usable([evaluate(single_term(n_obs, n_feat, i, k, support), ctx, "carrier")
-                          for k in range(n_feat)])
+        carriers = [evaluate(single_term(n_obs, n_feat, i, k, support), ctx, "carrier")
+                    for k in range(n_feat)]
+        trials = _usable(carriers)
         fitting = min(trials, key=lambda p: p.fit.misfit)
         for p in [trials[0], fitting] + trials[1:2]:
             add(p)
             add(improve_constants(p, ctx))
         first += [trials[0], fitting]
         best_carrier[i] = trials[0]
+        # every carrier also in its reduced gauge, ranked apart (ranked together, they
+        # would displace carriers that close well as they are): the best-closing and
+        # the best-fitting one are judged, the others compete for the remaining places
+        gauged = _usable([q for q in map(in_reduced_gauge, carriers) if q is not None])
+        for q in gauged:
+            add(q)
+        if gauged:
+            first += [gauged[0], min(gauged, key=lambda q: q.fit.misfit)]
     # the always-judged structures also in the gauge where the hidden state carries its
     # equation's terms that are its carrier times observed states (see gauge_reduced)
     for p in list(first):
-        q = gauge_reduced(p, ctx)
+        q = in_reduced_gauge(p)
         if q is not None:
             add(q)
             first.append(q)
@@ -161,7 +178,22 @@ def propose(ctx: Context, support, varying_pairs, series):
             chosen.append(p)
         if len(chosen) >= len(first) + KEEP:
             break
-    return chosen
+    # the always-judged structures also with the closure support of least held-out
+    # error where the one-standard-error rule chose a sparser one: on short or noisy
+    # records that rule can drop terms the law needs, and a closure without them cannot
+    # be refitted back (the judge's term selection then prunes what is not needed)
+    fuller = {id(p): q for p in first if (q := fuller_closure(p)) is not None}
+    return chosen + list(fuller.values())
+
+
+def fuller_closure(p: Proposal) -> Proposal | None:
+    """``p`` with its closure's least-error support (:class:`.closure.ClosureFit`'s
+    ``fuller``); None when the chosen support is that one."""
+    c = p.closure
+    if c.fuller is None:
+        return None
+    closure = replace(c, coef=c.fuller, cv_error=c.fuller_error, fuller=None)
+    return replace(p, closure=closure, origin=p.origin + ", fuller closure")
 
 
 def gauge_reduced(p: Proposal, ctx: Context) -> Proposal | None:

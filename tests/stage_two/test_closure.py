@@ -1,14 +1,16 @@
 """Stage two's building blocks against analytic truth: the closure (first order and a
 rate's second-order weak form) and the structured hidden-series smoother."""
 
+from dataclasses import make_dataclass
+
 import numpy as np
 import pysindy as ps
 import pytest
 import sympy as sp
 
 from latentsindy import systems
-from latentsindy._stage_two.closure import fit_closure, fit_rate_closure, path
-from latentsindy._stage_two.hypotheses import gauge_free_support
+from latentsindy._stage_two.closure import ClosureFit, fit_closure, fit_rate_closure, path
+from latentsindy._stage_two.hypotheses import fuller_closure, gauge_free_support
 from latentsindy._stage_two.smoother import Structure, fit_hidden, prune_constants, single_term
 
 
@@ -26,6 +28,29 @@ def test_closure_integral_refit_is_exact_on_clean_data():
         assert {k for k, v in found.items() if v != 0} == {"y", "y x"}
         assert found["y"] == pytest.approx(-1.5, rel=1e-4)
         assert found["y x"] == pytest.approx(0.075, rel=1e-4)
+        assert fit.fuller is None  # the exact support is also the least-error one
+
+
+def test_closure_keeps_its_least_error_support_beside_the_sparser_choice():
+    """With noisy rates the one-standard-error rule often picks a sparser support than
+    the one of least held-out error: that one is kept (``fuller``, refitted, with its
+    error) for the judge to try; when the rule picked it, there is none."""
+    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000)
+    y, x = data.x_clean[:, 1:2], data.x_clean[:, :1]
+    ydot = data.x_dot[:, 1:2]
+    offered = 0
+    for seed in range(6):
+        noisy = ydot + np.std(ydot) * np.random.default_rng(seed).standard_normal(ydot.shape)
+        fit = fit_closure([y], [noisy], [x], [data.t], ps.PolynomialLibrary(degree=2),
+                          ["y"], ["x"])
+        errors = [e for _, _, e in fit.table]
+        if fit.fuller is None:
+            assert fit.cv_error == min(errors)
+            continue
+        offered += 1
+        assert np.count_nonzero(fit.fuller) > np.count_nonzero(fit.coef)
+        assert fit.fuller_error == min(errors) < fit.cv_error
+    assert offered >= 2
 
 
 def test_stlsq_path_contains_the_sparse_truth():
@@ -156,3 +181,16 @@ def test_gauge_free_support_drops_what_the_hidden_state_can_carry():
     loads[1, 1, 0] = 0.5  # the same hidden state also in dy/dt
     assert np.array_equal(gauge_free_support(Structure(support, loads, ((0, 1),)), exprs,
                                              free), support)
+
+
+def test_a_proposal_with_its_fuller_closure():
+    """The variant carries the least-error support as its closure (and no further
+    variant); a closure without one gives none."""
+    closure = ClosureFit(np.array([[0.0, 1.0]]), ("1", "h0"), None, 0.3, [],
+                         np.array([[0.5, 1.0]]), 0.2)
+    proposal = make_dataclass("P", ["closure", "origin"])(closure, "carrier")
+    variant = fuller_closure(proposal)
+    np.testing.assert_array_equal(variant.closure.coef, [[0.5, 1.0]])
+    assert variant.closure.cv_error == 0.2 and variant.closure.fuller is None
+    assert variant.origin == "carrier, fuller closure"
+    assert fuller_closure(variant) is None
