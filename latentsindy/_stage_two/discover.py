@@ -155,7 +155,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     series = np.stack([np.concatenate([c.term(s, f) for c in coefs]) for s, f in pairs],
                       axis=1)
     if hidden_terms is None:
-        proposals = propose(ctx, first.support, index, series)
+        proposals = propose(ctx, first.support, index, series, fuller=refine)
     else:
         proposals = [evaluate(_named_structure(first.support, index), ctx, "hidden_terms")]
     if refine:

@@ -104,7 +104,7 @@ def _derivative(series, t, edge=False):
     return rate
 
 
-def propose(ctx: Context, support, varying_pairs, series):
+def propose(ctx: Context, support, varying_pairs, series, fuller=True):
     """Ranked proposals (best first) for the judge.
 
     Parameters
@@ -113,6 +113,11 @@ def propose(ctx: Context, support, varying_pairs, series):
     varying_pairs : list of (equation, feature) indices, stage one's varying terms,
         most significant first
     series : (T, len(varying_pairs)) their posterior-mean series (first trajectory)
+    fuller : bool
+        Also the always-judged proposals with their closure's least-error support
+        (:func:`fuller_closure`): a start for the integrated judge, whose term selection
+        prunes. Without refinement (proposals ranked by closure error alone) they would
+        win by construction, so leave them out there.
     """
     n_obs, n_feat = support.shape
     proposals = {}
@@ -182,8 +187,10 @@ def propose(ctx: Context, support, varying_pairs, series):
     # error where the one-standard-error rule chose a sparser one: on short or noisy
     # records that rule can drop terms the law needs, and a closure without them cannot
     # be refitted back (the judge's term selection then prunes what is not needed)
-    fuller = {id(p): q for p in first if (q := fuller_closure(p)) is not None}
-    return chosen + list(fuller.values())
+    if not fuller:
+        return chosen
+    extra = {id(p): q for p in first if (q := fuller_closure(p)) is not None}
+    return chosen + list(extra.values())
 
 
 def fuller_closure(p: Proposal) -> Proposal | None:
