@@ -22,18 +22,22 @@ def _call(run, task):
 def run_all(run, tasks, report, jobs=1, out=None):
     """``run(*task)`` for every task, each row passed to ``report`` as it comes (in task
     order), in ``jobs`` processes of one thread each (wall times then include
-    contention); every row written as JSON to ``out`` when given. Returns the rows."""
+    contention); the rows so far written as JSON to ``out`` after every row when given
+    (a run cut short keeps what it measured). Returns the rows."""
     rows = []
+
+    def keep(row):
+        rows.append(row)
+        report(row)
+        if out:
+            Path(out).write_text(json.dumps(rows, indent=1, default=float))
+
     if jobs > 1:
         os.environ.setdefault("OMP_NUM_THREADS", "1")
         with ProcessPoolExecutor(jobs, initializer=_single_threaded) as pool:
             for row in pool.map(partial(_call, run), tasks):
-                rows.append(row)
-                report(row)
+                keep(row)
     else:
         for task in tasks:
-            rows.append(run(*task))
-            report(rows[-1])
-    if out:
-        Path(out).write_text(json.dumps(rows, indent=1, default=float))
+            keep(run(*task))
     return rows

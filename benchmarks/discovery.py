@@ -240,7 +240,8 @@ def main(families=None, draws=10, noise=NOISE, out=None, verbose=False, jobs=1):
 
     def report(row):
         print(f"{row['family']:20s} noise {row['noise']:.0%} draw {row['draw']}: hidden "
-              f"{row['n_hidden']}/{row['n_hidden_true']} exact {row['exact']} error "
+              f"{row['n_hidden']}/{row['n_hidden_true']} exact {row['exact']} "
+              f"confident {row.get('confident')} error "
               f"{_pct(row['error'])} R^2 {row['r2']:.4f} ({row['wall']:.1f} s)"
               + (f" FAILED {row['failed']}" if "failed" in row else ""), flush=True)
 
