@@ -29,8 +29,10 @@ def run_all(run, tasks, report, jobs=1, out=None):
     def keep(row):
         rows.append(row)
         report(row)
-        if out:
-            Path(out).write_text(json.dumps(rows, indent=1, default=float))
+        if out:  # written beside, then moved: a kill mid-write leaves the last good file
+            part = Path(f"{out}.part")
+            part.write_text(json.dumps(rows, indent=1, default=float))
+            os.replace(part, out)
 
     if jobs > 1:
         os.environ.setdefault("OMP_NUM_THREADS", "1")
