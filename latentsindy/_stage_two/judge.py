@@ -143,6 +143,8 @@ def _finish(trial: _Trial) -> Verdict:
     pool = trial.candidates | trial.fit.system.free
     try:
         fit, history = select_terms(trial.problem, trial.fit, pool)
+        if not trial.problem.joins(fit):
+            return _unscored(trial, "does not join")  # not a trajectory of the system
         cv, se, _ = cross_validate(trial.problem, fit)
     except BlowUp:
         return _unscored(trial, "blew up")

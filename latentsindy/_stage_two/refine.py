@@ -6,7 +6,10 @@ estimated by Levenberg-Marquardt on the multiple-shooting residuals
 the gaps between consecutive segments, weighted so that at the solution they are a
 small fraction of the noise (continuity is enforced by a penalty that is raised until
 it holds). Only the observed states enter the misfit, so the hidden states are
-whatever the closed system needs them to be.
+whatever the closed system needs them to be. That scale comes from the initial guess,
+and a hidden state can shrink (its loadings growing) until its jumps between segments
+pass it while being as large as its whole variation: :meth:`Problem.joins` measures
+jumps in the state's own spread, and a fit that does not join is no trajectory.
 
 Held-out scoring (:func:`cross_validate`): segments are held out in interleaved folds
 (every ``n_folds``-th segment); with their data removed, a held-out segment is still
@@ -35,6 +38,10 @@ NOISE_FLOOR = 1e-3
 STEP = 0.2  # integrator step times the fastest local rate (see _stable_step)
 MAX_GRID = 400  # integrator steps per segment at most
 _PENALTY = (1e2, 1e4)  # continuity weight: first pass, then the enforcing pass
+# A hidden state's jump at a segment boundary above this fraction of its own spread over
+# the data is a break in the trajectory, not a gap left by the penalty (segments that
+# join leave jumps below 1e-3 of it; piecewise-constant states jump by 0.5-2x it).
+JOIN = 0.05
 
 
 @dataclass(frozen=True)
@@ -113,7 +120,7 @@ class Problem:
         stds[stds == 0] = 1.0
         sigma = noise_level(self.observed, self.times)
         self.sigma = np.maximum(sigma, NOISE_FLOOR * stds)  # exact data: see NOISE_FLOOR
-        relative = float(np.median(self.sigma / stds))
+        self.relative = relative = float(np.median(self.sigma / stds))
         guess_std = np.std(np.vstack(guesses), axis=0)
         guess_std[guess_std == 0] = 1.0
         # continuity residuals: every state in units of its own noise-like scale
@@ -209,16 +216,42 @@ class Problem:
                    total, _covariance(eq, system.n_free), status, rho)
 
     def _gap(self, system, starts):
-        worst = 0.0
+        """Largest continuity gap between consecutive segments, in ``scale`` units."""
+        gaps = self._boundary_gaps(system, starts) / self.scale
+        return float(gaps.max()) if gaps.size else 0.0
+
+    def _boundary_gaps(self, system, starts) -> np.ndarray:
+        """|start of a segment - end of the one before| for every boundary within a
+        trajectory, (n_boundaries, n_states)."""
+        out = [np.zeros((0, starts.shape[1]))]
         for g in self.groups:
             if g.n_segments < 2:
                 continue
             segs = np.arange(g.first, g.first + g.n_segments)
             _, ends = self.integrator_for(system).run(system.coef, starts[segs], g,
                                                       sensitivities=False)
-            gap = (torch.as_tensor(starts[segs[1:]]) - ends[:-1]) / torch.as_tensor(self.scale)
-            worst = max(worst, float(gap.abs().max()))
-        return worst
+            out.append(np.abs(starts[segs[1:]] - ends[:-1].numpy()))
+        return np.vstack(out)
+
+    def jumps(self, fit: Fit) -> np.ndarray:
+        """Largest jump of every hidden state at a segment boundary, relative to its own
+        spread over the data (std, at least 1% of its RMS). The continuity scale comes
+        from the initial guess; a hidden state free to shrink (its loadings growing)
+        can leave jumps small on that scale yet as large as its whole variation: a
+        trajectory that does not join, which no solution of the system has."""
+        gaps = self._boundary_gaps(fit.system, fit.starts)[:, self.n_obs:]
+        worst = gaps.max(axis=0) if len(gaps) else np.zeros(gaps.shape[1])
+        return worst / (self._hidden_spread(fit) + 1e-300)
+
+    def joins(self, fit: Fit) -> bool:
+        """Whether every hidden state's jumps at segment boundaries are below ``JOIN``
+        of its spread (:meth:`jumps`): the fit is a trajectory of its system."""
+        return bool(np.all(self.jumps(fit) <= JOIN))
+
+    def _hidden_spread(self, fit: Fit) -> np.ndarray:
+        traj = np.vstack(self.trajectories(fit))[:, self.n_obs:]
+        rms = np.sqrt(np.nanmean(traj**2, axis=0))
+        return np.maximum(np.nanstd(traj, axis=0), 1e-2 * rms)
 
     def trajectories(self, fit: Fit):
         """The fitted states at every sample, one (T, n_states) array per trajectory."""

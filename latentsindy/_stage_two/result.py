@@ -63,8 +63,9 @@ class Alternative:
     """Another structure the judge considered.
 
     ``score`` is its held-out score when ``status`` is "scored"; for "rejected" (misfit
-    far above the best) and "blew up" it is the in-sample misfit (noise variances); for
-    "not refined" (``refine=False``) it is NaN.
+    far above the best), "blew up" and "does not join" (a hidden state jumps between
+    integration segments, so the fit is no trajectory of the system) it is the in-sample
+    misfit (noise variances); for "not refined" (``refine=False``) it is NaN.
     """
 
     description: str
@@ -73,7 +74,7 @@ class Alternative:
     score: float
     score_se: float
     size: int
-    status: str  # "scored", "rejected" (misfit far above the best), "blew up", "not refined"
+    status: str  # "scored", "rejected", "blew up", "does not join", "not refined"
 
 
 @dataclass(frozen=True)

@@ -82,7 +82,9 @@ def _first_better(problem, fit, model, moves, base, s2, price, tabu):
             continue
         attempts += 1
         trial = _refit(problem, fit, model, keep)
-        if trial is not None and _bic(trial, s2, price) < base:
+        # a move whose fit leaves a hidden state jumping between segments (shrunk until
+        # its jumps pass the continuity scale) is no system's trajectory: refused
+        if trial is not None and _bic(trial, s2, price) < base and problem.joins(trial):
             return trial, move, float(gain)
         tabu.add(move)  # the quadratic model promised more than the exact refit
     return None

@@ -15,7 +15,7 @@ from latentsindy._stage_two import terms as terms_module
 from latentsindy._stage_two.assemble import _segment_constants, _weak, doubts
 from latentsindy._stage_two.field import FeatureMap, ParametricSystem
 from latentsindy._stage_two.judge import rank
-from latentsindy._stage_two.refine import Problem, cross_validate
+from latentsindy._stage_two.refine import JOIN, Fit, Problem, cross_validate
 from latentsindy._stage_two.result import Refinement, Term
 from latentsindy._stage_two.shooting import BlowUp
 from latentsindy._stage_two.terms import AMBIGUITY, ambiguities, select_terms, weak_terms
@@ -70,6 +70,33 @@ def test_refinement_recovers_exact_coefficients():
     fit = problem.fit()
     np.testing.assert_allclose(fit.system.coef[1, :4], TRUTH_ROW[:4], rtol=1e-4)
     assert fit.gap < 0.05
+    assert problem.joins(fit) and problem.jumps(fit).max() < 1e-3 * JOIN
+
+
+def test_a_hidden_state_that_shrinks_and_jumps_does_not_join():
+    """x' = 1e5 h, h' = 0 on data whose slope doubles halfway: with h set to each
+    segment's slope / 1e5, the gaps are small on the guess's continuity scale (the
+    check the penalty enforces), yet h jumps by twice its spread: not a trajectory.
+    The same system with one constant h joins."""
+    t = np.linspace(0.0, 10.0, 1000)
+    slope = np.where(t < 5.0, 1.0, 2.0)
+    x = np.where(t < 5.0, t, 5.0 + 2.0 * (t - 5.0))
+    noisy = x + 0.01 * np.std(x) * np.random.default_rng(0).standard_normal(t.size)
+    system = ParametricSystem(("x", "h"), 1, (H,), np.array([[1e5], [0.0]]),
+                              np.array([[True], [False]]))
+    problem = Problem(system, [t], [noisy[:, None]], [np.column_stack([x, slope])])
+    t0 = problem.groups[0].starts
+
+    def fit_with(h):
+        x0 = np.concatenate([[0.0], np.cumsum(1e5 * h[:-1] * np.diff(t0))])  # joined
+        starts = np.column_stack([x0, h])
+        return Fit(system, starts, 0.0, 0.0, problem.n_data, problem._gap(system, starts),
+                   0, np.zeros((1, 1)))
+
+    jumping = fit_with(np.interp(t0, t, slope) / 1e5)
+    assert jumping.gap < 1e-2  # the continuity penalty's own measure is satisfied
+    assert not problem.joins(jumping) and problem.jumps(jumping)[0] > 1.0
+    assert problem.joins(fit_with(np.full(t0.size, 1.5e-5)))
 
 
 def test_multiple_shooting_converges_on_a_chaotic_system():
