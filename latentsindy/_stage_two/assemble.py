@@ -189,7 +189,8 @@ def doubts(score, score_se, refinement, terms, hidden):
     found = []
     if not (np.isfinite(score) and np.isfinite(score_se)):
         found.append("the closed system could not be scored on held-out data (its "
-                     "integration blew up): it was not checked against the data")
+                     "integration blew up, or its hidden states jump between integration "
+                     "segments): it was not checked against the data")
     elif score - SIGNIFICANCE * score_se > 1 + REPRODUCTION_SLACK:
         found.append(
             f"the closed system does not reproduce held-out data down to their noise (score "

@@ -120,7 +120,7 @@ class Problem:
         stds[stds == 0] = 1.0
         sigma = noise_level(self.observed, self.times)
         self.sigma = np.maximum(sigma, NOISE_FLOOR * stds)  # exact data: see NOISE_FLOOR
-        self.relative = relative = float(np.median(self.sigma / stds))
+        relative = float(np.median(self.sigma / stds))
         guess_std = np.std(np.vstack(guesses), axis=0)
         guess_std[guess_std == 0] = 1.0
         # continuity residuals: every state in units of its own noise-like scale
