@@ -126,7 +126,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
 
     alternatives = tuple(alt(v) for v in ordered[1:])
     unsure = tuple(alt(v) for v in uncertain)
-    # an unscored winner (every candidate blew up on held-out data) has no score
+    # an unscored winner (every candidate blew up or does not join) has no score
     score, score_se = (best.cv, best.cv_se) if best.scored else (math.inf, math.nan)
     notes = _static_notes(terms, names)
     return HiddenDiscovery(

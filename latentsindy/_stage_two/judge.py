@@ -261,15 +261,17 @@ def rank(verdicts):
     ``uncertain`` lists the others in that band whose hidden states are not a superset
     of the chosen one's (other carriers): structures the data cannot tell apart.
     Systems in the band that only add terms or hidden states to the chosen one are
-    parsimony's call. With no scored verdict, the smallest comes first."""
+    parsimony's call. With no scored verdict, the smallest comes first (those that do not
+    join last)."""
     unique = []
     for v in sorted(verdicts, key=lambda v: (not v.scored, v.cv)):
         if not any(same_structure(v, u) for u in unique):
             unique.append(v)  # the same final system reached twice counts once
     verdicts = unique
     finite = [v for v in verdicts if v.scored and np.isfinite(v.cv)]
-    if not finite:
-        return sorted(verdicts, key=lambda v: v.size), []
+    if not finite:  # a fit that is no trajectory of its system comes last
+        return sorted(verdicts, key=lambda v: (v.history[:1] == ("does not join",),
+                                               v.size)), []
     best = min(finite, key=lambda v: v.cv)
     band = max(best.cv + best.cv_se, TIE)
     inside = [v for v in finite if v.cv <= band]

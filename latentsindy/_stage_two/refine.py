@@ -6,10 +6,11 @@ estimated by Levenberg-Marquardt on the multiple-shooting residuals
 the gaps between consecutive segments, weighted so that at the solution they are a
 small fraction of the noise (continuity is enforced by a penalty that is raised until
 it holds). Only the observed states enter the misfit, so the hidden states are
-whatever the closed system needs them to be. That scale comes from the initial guess,
-and a hidden state can shrink (its loadings growing) until its jumps between segments
-pass it while being as large as its whole variation: :meth:`Problem.joins` measures
-jumps in the state's own spread, and a fit that does not join is no trajectory.
+whatever the closed system needs them to be. A hidden state's continuity unit comes
+from the initial guess, and the state can shrink below it (its loadings growing) and
+then jump between segments by its whole variation while the gaps read small:
+:meth:`Problem.joins` measures such jumps in the state's own spread, and a fit that
+does not join is no trajectory of its system.
 
 Held-out scoring (:func:`cross_validate`): segments are held out in interleaved folds
 (every ``n_folds``-th segment); with their data removed, a held-out segment is still
@@ -40,7 +41,7 @@ MAX_GRID = 400  # integrator steps per segment at most
 _PENALTY = (1e2, 1e4)  # continuity weight: first pass, then the enforcing pass
 # A hidden state's jump at a segment boundary above this fraction of its own spread over
 # the data is a break in the trajectory, not a gap left by the penalty (segments that
-# join leave jumps below 1e-3 of it; piecewise-constant states jump by 0.5-2x it).
+# join leave jumps below 1e-3 of it; shrunk piecewise-constant states jump by 0.5-2x it).
 JOIN = 0.05
 
 
@@ -217,41 +218,48 @@ class Problem:
 
     def _gap(self, system, starts):
         """Largest continuity gap between consecutive segments, in ``scale`` units."""
-        gaps = self._boundary_gaps(system, starts) / self.scale
-        return float(gaps.max()) if gaps.size else 0.0
-
-    def _boundary_gaps(self, system, starts) -> np.ndarray:
-        """|start of a segment - end of the one before| for every boundary within a
-        trajectory, (n_boundaries, n_states)."""
-        out = [np.zeros((0, starts.shape[1]))]
+        worst = 0.0
         for g in self.groups:
             if g.n_segments < 2:
                 continue
             segs = np.arange(g.first, g.first + g.n_segments)
             _, ends = self.integrator_for(system).run(system.coef, starts[segs], g,
                                                       sensitivities=False)
-            out.append(np.abs(starts[segs[1:]] - ends[:-1].numpy()))
-        return np.vstack(out)
+            gap = (torch.as_tensor(starts[segs[1:]]) - ends[:-1]) / torch.as_tensor(self.scale)
+            worst = max(worst, float(gap.abs().max()))
+        return worst
 
     def jumps(self, fit: Fit) -> np.ndarray:
-        """Largest jump of every hidden state at a segment boundary, relative to its own
-        spread over the data (std, at least 1% of its RMS). The continuity scale comes
-        from the initial guess; a hidden state free to shrink (its loadings growing)
-        can leave jumps small on that scale yet as large as its whole variation: a
-        trajectory that does not join, which no solution of the system has."""
-        gaps = self._boundary_gaps(fit.system, fit.starts)[:, self.n_obs:]
-        worst = gaps.max(axis=0) if len(gaps) else np.zeros(gaps.shape[1])
-        return worst / (self._hidden_spread(fit) + 1e-300)
+        """Largest jump of every hidden state at a segment boundary that the continuity
+        penalty cannot see, relative to the state's own spread in that recording (std
+        over its samples, at least 1% of its RMS). The penalty measures jumps in a unit
+        set from the initial guess; a hidden state free to shrink (its loadings
+        growing) below that unit can jump by its whole variation while the penalty
+        reads a small gap: a trajectory that does not join, which no solution of the
+        system has. Where the spread is at least the unit the penalty sees the jumps
+        (and the fit reports its gap), so they count as 0 here."""
+        n_obs = self.n_obs
+        worst = np.zeros(fit.starts.shape[1] - n_obs)
+        unit = self.scale[n_obs:]
+        for g in self.groups:
+            if g.n_segments < 2:
+                continue
+            segs = np.arange(g.first, g.first + g.n_segments)
+            vals, ends = self.integrator_for(fit.system).run(
+                fit.system.coef, fit.starts[segs], g, sensitivities=False)
+            hidden = vals.numpy()[g.mask.numpy()][:, n_obs:]
+            rms = np.sqrt(np.mean(hidden**2, axis=0))
+            spread = np.maximum(np.std(hidden, axis=0), 1e-2 * rms)
+            jump = np.abs(fit.starts[segs[1:], n_obs:] - ends[:-1, n_obs:].numpy()).max(axis=0)
+            ratio = np.where(spread < unit, jump / (spread + 1e-300), 0.0)
+            worst = np.maximum(worst, np.where(np.isfinite(ratio), ratio, np.inf))
+        return worst
 
     def joins(self, fit: Fit) -> bool:
-        """Whether every hidden state's jumps at segment boundaries are below ``JOIN``
-        of its spread (:meth:`jumps`): the fit is a trajectory of its system."""
+        """Whether no hidden state jumps at a segment boundary by more than ``JOIN`` of
+        its spread where the continuity penalty cannot see it (:meth:`jumps`): the fit
+        is a trajectory of its system."""
         return bool(np.all(self.jumps(fit) <= JOIN))
-
-    def _hidden_spread(self, fit: Fit) -> np.ndarray:
-        traj = np.vstack(self.trajectories(fit))[:, self.n_obs:]
-        rms = np.sqrt(np.nanmean(traj**2, axis=0))
-        return np.maximum(np.nanstd(traj, axis=0), 1e-2 * rms)
 
     def trajectories(self, fit: Fit):
         """The fitted states at every sample, one (T, n_states) array per trajectory."""

@@ -11,6 +11,7 @@ import sympy as sp
 import torch
 
 from latentsindy import systems
+from latentsindy._stage_two import judge
 from latentsindy._stage_two import terms as terms_module
 from latentsindy._stage_two.assemble import _segment_constants, _weak, doubts
 from latentsindy._stage_two.field import FeatureMap, ParametricSystem
@@ -97,6 +98,35 @@ def test_a_hidden_state_that_shrinks_and_jumps_does_not_join():
     assert jumping.gap < 1e-2  # the continuity penalty's own measure is satisfied
     assert not problem.joins(jumping) and problem.jumps(jumping)[0] > 1.0
     assert problem.joins(fit_with(np.full(t0.size, 1.5e-5)))
+    # the same jumps by a state as large as its guess: the penalty itself sees them
+    visible = dataclasses.replace(system, coef=np.array([[1.0], [0.0]]))
+    problem = Problem(visible, [t], [noisy[:, None]], [np.column_stack([x, slope])])
+    starts = jumping.starts * np.array([1.0, 1e5])
+    assert problem._gap(visible, starts) > 10 and problem.joins(
+        Fit(visible, starts, 0.0, 0.0, problem.n_data, 0.0, 0, np.zeros((1, 1))))
+
+
+def test_a_move_or_fit_that_does_not_join_is_refused(monkeypatch):
+    """Wired in: with every fit declared not joining, term selection makes no move and
+    the judge leaves the system unscored ("does not join"); ranked without scores, such
+    a system comes after one that blew up, whatever their sizes."""
+    data, guesses = lv_problem(0.01)
+    row = TRUTH_ROW.copy()
+    row[0], row[4] = 0.0, 1e-3
+    problem = Problem(lv_system(row), [data.t], [data.x[:, :1]], guesses)
+    candidates = np.zeros((2, 5), dtype=bool)
+    candidates[1] = True
+    candidates &= ~problem.system.free
+    fit = problem.fit()
+    monkeypatch.setattr(Problem, "joins", lambda self, fit: False)
+    assert select_terms(problem, fit, candidates)[1] == []
+    verdict = judge._finish(judge._Trial(None, problem, fit, candidates, 1.0))
+    assert not verdict.scored and verdict.history == ("does not join",)
+    small = dataclasses.replace(verdict, history=("does not join",))
+    large = _verdict(1.0, 0.0, 9, 1)
+    large.scored, large.history = False, ("blew up",)
+    large.cv = np.inf
+    assert judge.rank([small, large])[0][0] is large
 
 
 def test_multiple_shooting_converges_on_a_chaotic_system():
