@@ -47,6 +47,18 @@ def lv_problem(noise, seed=0, n_times=1500):
     return data, guesses
 
 
+def swapped_lv_problem():
+    """1% noise, the true x h term missing and a spurious h x^2 in its place; returns
+    the problem and the terms selection may add."""
+    data, guesses = lv_problem(0.01)
+    row = TRUTH_ROW.copy()
+    row[0], row[4] = 0.0, 1e-3
+    problem = Problem(lv_system(row), [data.t], [data.x[:, :1]], guesses)
+    candidates = np.zeros((2, 5), dtype=bool)
+    candidates[1] = True
+    return problem, candidates & ~problem.system.free
+
+
 def test_feature_map_monomials_match_lambdify():
     """The exponent path (monomials) and the lambdify path give the same features and
     gradients; a non-polynomial feature goes through lambdify."""
@@ -110,13 +122,7 @@ def test_a_move_or_fit_that_does_not_join_is_refused(monkeypatch):
     """Wired in: with every fit declared not joining, term selection makes no move and
     the judge leaves the system unscored ("does not join"); ranked without scores, such
     a system comes after one that blew up, whatever their sizes."""
-    data, guesses = lv_problem(0.01)
-    row = TRUTH_ROW.copy()
-    row[0], row[4] = 0.0, 1e-3
-    problem = Problem(lv_system(row), [data.t], [data.x[:, :1]], guesses)
-    candidates = np.zeros((2, 5), dtype=bool)
-    candidates[1] = True
-    candidates &= ~problem.system.free
+    problem, candidates = swapped_lv_problem()
     fit = problem.fit()
     monkeypatch.setattr(Problem, "joins", lambda self, fit: False)
     assert select_terms(problem, fit, candidates)[1] == []
@@ -183,13 +189,8 @@ def test_held_out_score_separates_right_and_wrong_structures():
 def test_term_selection_finds_the_missing_term_and_drops_the_spurious_one():
     """Start without x h and with a spurious h x^2 (so the two trade places, a swap):
     the selection ends on the true four terms, coefficients within 1% at 1% noise."""
-    data, guesses = lv_problem(0.01)
-    row = TRUTH_ROW.copy()
-    row[0], row[4] = 0.0, 1e-3
-    problem = Problem(lv_system(row), [data.t], [data.x[:, :1]], guesses)
-    candidates = np.zeros((2, 5), dtype=bool)
-    candidates[1] = True
-    fit, history = select_terms(problem, problem.fit(), candidates & ~problem.system.free)
+    problem, candidates = swapped_lv_problem()
+    fit, history = select_terms(problem, problem.fit(), candidates)
     assert history
     assert list(np.flatnonzero(fit.system.free[1])) == [0, 1, 2, 3]
     np.testing.assert_allclose(fit.system.coef[1, :4], TRUTH_ROW[:4], rtol=0.01)
