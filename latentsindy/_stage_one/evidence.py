@@ -1,0 +1,106 @@
+"""Stage one's exact check: the varying-coefficient model on the whole data.
+
+:class:`VaryingCoefficients` sets the model up once per fit (integral-form normal
+equations, :mod:`.vcm`; one :class:`~.vcm_fit.EquationModel` per equation) and
+answers the two questions stage one asks of it: which structure each equation has
+(:meth:`choose`, by :mod:`.structure`) and what the posterior of a structure's
+coefficients is (:meth:`fit`, :meth:`series`).
+
+Resolution: knots every half differentiator window in time (the finest scale the
+noise lets the data resolve; the window is chosen by the discrepancy principle, so
+short on clean data, wide on noisy data), at most ``MAX_KNOTS`` over the series;
+integration windows of four knot spacings.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from .._core.derivatives import choose_window
+from .structure import EquationChoice, StructureSearch, thresholded_constants
+from .vcm import LevelGram, spline_basis
+from .vcm_fit import EquationFit, EquationModel
+
+MAX_KNOTS = 1024
+MIN_KNOTS = 16
+NOISE_FLOOR = 1e-3  # measurement noise floor, relative to each state's std
+
+
+def resolution(x: np.ndarray, t: np.ndarray) -> tuple[int, int]:
+    """(number of knots, samples per integration window) for a trajectory."""
+    n = len(t)
+    windows = [choose_window(x[:, j], t=t) for j in range(x.shape[1])]
+    half = max(1.0, min(windows) / 2.0)  # samples between knots
+    n_knots = int(np.clip(round((n - 1) / half) + 3, MIN_KNOTS, MAX_KNOTS))
+    step = (n - 1) / (n_knots - 3)  # samples between knots after the clip
+    return n_knots, max(4, int(round(4 * step)))
+
+
+class VaryingCoefficients:
+    """The varying-coefficient model of every equation of one fit.
+
+    Parameters
+    ----------
+    trajectories : list of (n, S) arrays sharing one clock (``times``)
+    times : list of (n,) arrays
+    thetas : list of (n, F) arrays, the library divided by ``feature_scale``
+    derivative_scale : (S,) array: the normalisation of each equation
+    noise_std : (S,) array: the measurement noise of each state
+    """
+
+    def __init__(self, trajectories, times, thetas, derivative_scale, noise_std):
+        t0 = min(float(t[0]) for t in times)
+        t1 = max(float(t[-1]) for t in times)
+        longest = int(np.argmax([len(t) for t in times]))
+        self.n_knots, self.window = resolution(trajectories[longest], times[longest])
+        self.span = (t0, t1)
+        states = [np.asarray(x, float) / derivative_scale for x in trajectories]
+        self.gram = LevelGram(states, times, thetas, self.n_knots, self.span, self.window)
+        floor = NOISE_FLOOR * np.std(np.vstack(trajectories), axis=0)
+        noise = np.maximum(np.asarray(noise_std, float), floor) / derivative_scale
+        self.models = [EquationModel(self.gram.equation(i), noise[i] ** 2)
+                       for i in range(len(derivative_scale))]
+        self.basis = spline_basis(times[longest], self.n_knots, self.span)
+
+    def basis_at(self, times):
+        """The spline basis at other times (for :meth:`EquationFit.series`)."""
+        return spline_basis(np.asarray(times, float), self.n_knots, self.span)
+
+    def choose(self, support, varying, free_rows, allowed, threshold):
+        """The structure of every equation, by evidence (``structure`` module).
+
+        ``support``, ``varying``, ``allowed``: (S, F) bool arrays (the generator's
+        proposal; the terms that may vary); ``free_rows``: equations whose support is
+        free. Returns one :class:`EquationChoice` per equation (None for an equation
+        with an empty fixed support).
+        """
+        with threadpool_limits(1):  # small dense algebra: threads cost more than they gain
+            return self._choose(support, varying, free_rows, allowed, threshold)
+
+    def _choose(self, support, varying, free_rows, allowed, threshold):
+        out = []
+        for i, model in enumerate(self.models):
+            sup = set(np.flatnonzero(support[i]))
+            var = set(np.flatnonzero(varying[i] & support[i]))
+            free = bool(free_rows[i])
+            if not free and not sup:
+                out.append(None)
+                continue
+            search = StructureSearch(model, self.basis, threshold, free, sup,
+                                     set(np.flatnonzero(allowed[i])))
+            starts = [(sup, var), (sup, set())]
+            if free:
+                starts.append((thresholded_constants(model.g, threshold,
+                                                     range(model.g.n_features)), set()))
+            out.append(search.run(starts))
+        return out
+
+    def fit(self, i, support_row, varying_row) -> EquationFit:
+        """Posterior of one equation's structure (adaptive slope priors)."""
+        return self.models[i].fit(np.flatnonzero(support_row),
+                                  np.flatnonzero(np.asarray(varying_row) & support_row),
+                                  adaptive=True)
+
+
+__all__ = ["EquationChoice", "VaryingCoefficients", "resolution"]

@@ -1,0 +1,152 @@
+"""Which terms exist and which of them vary, decided together by the evidence.
+
+A generator's variation is flexible enough to stand in for a missing term (Lorenz's
+``rho(t) x`` absorbing ``-y``, a rough coefficient following the states), so its own
+support and variation are only a proposal. Here each free equation's structure (the
+support S and the varying terms V in it) is chosen by the exact evidence of the
+varying-coefficient model (:mod:`.vcm_fit`) on the integral form of the data
+(:mod:`.vcm`), with a prior that charges a Bayes factor of 20 for every term and for
+every variation:
+
+* a structure is admissible when every term explains at least ``threshold`` of its
+  equation's RMS derivative (mean |coefficient| in normalised units, the generators'
+  pruning rule) and every variation does too (its standard deviation over time);
+  a candidate is made admissible by freezing the smallest variation, or dropping the
+  smallest term, until it is;
+* a greedy search moves one step at a time (add a constant term, drop a term, freeze
+  or free a term's variation) to the best admissible neighbour while that raises the
+  score; it starts from the generator's structure, from the generator's support with
+  every term constant, and from a sequentially thresholded constant fit, so a
+  generator that lost a term does not decide the outcome;
+* with Gaussian slope priors first (fast), then again with adaptive ones (a sharp
+  switch is one bend, not a rough series) from the best structure found.
+
+The result per equation is an :class:`EquationChoice`: the chosen fit and the
+admissible neighbours that score within that Bayes factor (the structure is then
+uncertain: the band includes them, and they become doubts).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .vcm_fit import EquationFit, EquationModel
+
+LOG_PRIOR_ODDS = np.log(20.0)  # price of one more term, or one more varying term
+
+
+@dataclass(frozen=True)
+class EquationChoice:
+    """The structure chosen for one equation, and its close competitors."""
+
+    fit: EquationFit
+    rivals: tuple[EquationFit, ...]  # admissible neighbours scoring within the price
+    searched: int  # structures evaluated
+
+
+def penalised(fit: EquationFit) -> float:
+    """Score of a structure: log evidence minus the price of its terms and variations."""
+    return fit.score - LOG_PRIOR_ODDS * (len(fit.support) + len(fit.varying))
+
+
+class StructureSearch:
+    """Greedy search over (support, varying) of one equation.
+
+    Parameters
+    ----------
+    model : EquationModel
+    basis : (first, values) of the spline basis at the samples (for term sizes)
+    threshold : float
+        Smallest normalised size of a term, and of a variation.
+    free : bool
+        Whether the support may change (False: the user fixed this equation).
+    support : set of int
+        The support to keep when not ``free``.
+    allowed : set of int
+        Terms that may vary.
+    """
+
+    def __init__(self, model: EquationModel, basis, threshold, free, support, allowed):
+        self.model, self.basis, self.threshold = model, basis, threshold
+        self.free, self.fixed_support, self.allowed = free, set(support), set(allowed)
+
+    def sizes(self, fit):
+        """Mean |coefficient| of every term and standard deviation of every variation."""
+        mean, _ = fit.series(*self.basis, with_sd=False)
+        size = {k: float(np.mean(np.abs(mean[:, a]))) for a, k in enumerate(fit.varying)}
+        spread = {k: float(np.std(mean[:, a])) for a, k in enumerate(fit.varying)}
+        size.update({j: abs(float(c)) for j, c in zip(fit.constant, fit.constants,
+                                                        strict=True)})
+        return size, spread
+
+    def admissible(self, support, varying, adaptive, start=None):
+        """Freeze the smallest variation, else drop the smallest term, until every one
+        passes the threshold; returns the fit. ``start``: a neighbour's fit (its
+        roughness is the starting point)."""
+        support, varying = set(support), set(varying) & set(support) & self.allowed
+        rough = {} if start is None else dict(zip(start.varying, start.log_rough, strict=True))
+        while True:
+            fit = self.model.fit(support, varying, adaptive, rough)
+            if not np.isfinite(fit.score):
+                return fit
+            size, spread = self.sizes(fit)
+            small = [k for k in varying if spread[k] < self.threshold]
+            if small:
+                varying.discard(min(small, key=spread.get))
+                continue
+            small = [k for k in support if size[k] < self.threshold] if self.free else []
+            if small:
+                k = min(small, key=size.get)
+                support.discard(k)
+                varying.discard(k)
+                continue
+            return fit
+
+    def neighbours(self, fit):
+        support, varying = set(fit.support), set(fit.varying)
+        out = []
+        if self.free:
+            n_features = self.model.g.n_features
+            out += [(support | {j}, varying) for j in range(n_features) if j not in support]
+            out += [(support - {k}, varying - {k}) for k in support]
+        out += [(support, varying - {k}) for k in varying]
+        out += [(support, varying | {k}) for k in support - varying if k in self.allowed]
+        return out
+
+    def climb(self, fit, adaptive):
+        """Greedy ascent from ``fit``; returns the last fit and its neighbours' fits."""
+        while True:
+            near = [self.admissible(s, v, adaptive, fit) for s, v in self.neighbours(fit)]
+            best = max(near, key=penalised, default=None)
+            if best is None or penalised(best) <= penalised(fit) + 1e-9:
+                return fit, near
+            fit = best
+
+    def run(self, starts) -> EquationChoice:
+        """Search from every (support, varying) in ``starts``, Gaussian then adaptive."""
+        if not self.free:
+            starts = [(self.fixed_support, v) for _, v in starts]
+        found = [self.climb(self.admissible(s, v, False), False)[0] for s, v in starts]
+        best = max(found, key=penalised)
+        fit, near = self.climb(self.admissible(best.support, best.varying, True), True)
+        rivals = tuple(f for f in near if (f.support, f.varying) != (fit.support, fit.varying)
+                       and penalised(f) > penalised(fit) - LOG_PRIOR_ODDS)
+        return EquationChoice(fit, rivals, len(self.model._cache))
+
+
+def thresholded_constants(gram, threshold, candidates):
+    """Support of a sequentially thresholded least-squares fit with constant
+    coefficients (STLSQ on the integral form), among ``candidates``."""
+    active = sorted(candidates)
+    for _ in range(len(active) + 1):
+        if not active:
+            break
+        g = gram.const[np.ix_(active, active)]
+        coef = np.linalg.lstsq(g, gram.const_y[active], rcond=None)[0]
+        keep = [j for j, c in zip(active, coef, strict=True) if abs(c) >= threshold]
+        if keep == active:
+            break
+        active = keep
+    return set(active)

@@ -1,0 +1,117 @@
+"""The varying-coefficient model behind stage one's structure choice and band: exact
+linear algebra against dense references, and recovery of known coefficients."""
+
+import numpy as np
+import pytest
+from scipy.linalg import cholesky_banded
+from scipy.special import gammaln
+
+from latentsindy._stage_one.evidence import VaryingCoefficients, resolution
+from latentsindy._stage_one.vcm import LevelGram, spline_basis
+from latentsindy._stage_one.vcm_fit import EquationModel, _Normal, selected_inverse
+
+
+def test_spline_basis_is_a_partition_of_unity():
+    t = np.sort(np.random.default_rng(0).uniform(0, 3, 500))
+    first, values = spline_basis(t, 20, (0.0, 3.0))
+    np.testing.assert_allclose(values.sum(axis=1), 1.0, atol=1e-12)
+    assert first.min() >= 0 and first.max() <= 16
+
+
+def test_selected_inverse_matches_the_dense_inverse():
+    rng = np.random.default_rng(0)
+    n, w = 40, 5
+    mask = np.abs(np.subtract.outer(np.arange(n), np.arange(n))) <= w
+    b = rng.normal(size=(n, n))
+    a = (b + b.T) * mask
+    a += np.eye(n) * (np.abs(a).sum(axis=1).max() + 1)
+    band = np.zeros((w + 1, n))
+    for off in range(w + 1):
+        band[w - off, off:] = np.diag(a, off)
+    inv = selected_inverse(cholesky_banded(band))
+    dense = np.linalg.inv(a)
+    for off in range(w + 1):
+        np.testing.assert_allclose(inv[w - off, off:], np.diag(dense, off), atol=1e-14)
+
+
+def _small_problem():
+    rng = np.random.default_rng(1)
+    n, m = 400, 12
+    t = np.sort(rng.uniform(0, 10, n))
+    x = np.cumsum(rng.normal(size=(n, 2)), axis=0) * 0.1
+    theta = np.column_stack([np.ones(n), x[:, 0], x[:, 1]])
+    gram = LevelGram([x], [t], [theta], m, (t[0], t[-1]), 25).equation(0)
+    return t, gram, m
+
+
+def test_banded_evidence_equals_the_dense_formula():
+    t, g, m = _small_problem()
+    model = EquationModel(g, 0.01)
+    varying, constant = (1, 2), (0,)
+    log_rough = np.array([2.0, 4.0])
+    value, _ = model._solve(_Normal(g, varying, constant), log_rough, [None, None])
+    size, v = 2 * m + 1, 2
+    gram = np.zeros((size, size))
+    for d in range(g.reach):
+        for k in range(m - d):
+            for a in range(v):
+                for b in range(v):
+                    i, j = k * v + a, (k + d) * v + b
+                    gram[i, j] = gram[j, i] = g.band[d][k, varying[a], varying[b]]
+    gram[:-1, -1] = gram[-1, :-1] = g.spline_const[:, varying, 0].reshape(-1)
+    gram[-1, -1] = g.const[0, 0]
+    rhs = np.concatenate([g.spline_y[:, varying].reshape(-1), [g.const_y[0]]])
+    d2 = np.diff(np.eye(m), 2, axis=0)
+    prior = np.zeros((size, size))
+    for a in range(v):
+        idx = np.arange(m) * v + a
+        prior[np.ix_(idx, idx)] = np.exp(log_rough[a]) * d2.T @ d2 + model.ridge * np.eye(m)
+    prior[-1, -1] = model.level
+    resid = g.yy - rhs @ np.linalg.solve(gram + prior, rhs)
+    dense = (gammaln(g.n / 2) - g.n / 2 * np.log(np.pi) + 0.5 * np.linalg.slogdet(prior)[1]
+             - 0.5 * np.linalg.slogdet(gram + prior)[1] - g.n / 2 * np.log(resid))
+    assert value == pytest.approx(dense, rel=1e-9)  # eigenvalue route for the prior
+
+
+def _varying_oscillator(noise, n=1500, seed=0):
+    """xdot = a(t) y, ydot = -x with a(t) = 1 + 0.5 sin(0.2 t): the exact solution on a
+    fine grid (RK4), sampled with noise."""
+    t = np.linspace(0, 40, n)
+    a = lambda s: 1.0 + 0.5 * np.sin(0.2 * s)  # noqa: E731
+    fine = np.linspace(0, 40, 40 * n)
+    h = fine[1] - fine[0]
+    f = lambda s, z: np.array([a(s) * z[1], -z[0]])  # noqa: E731
+    z, out = np.array([1.0, 0.0]), [np.array([1.0, 0.0])]
+    for s in fine[:-1]:
+        k1 = f(s, z)
+        k2 = f(s + h / 2, z + h / 2 * k1)
+        k3 = f(s + h / 2, z + h / 2 * k2)
+        k4 = f(s + h, z + h * k3)
+        z = z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        out.append(z)
+    x = np.array(out)[::40]
+    rng = np.random.default_rng(seed)
+    return t, x + noise * x.std(axis=0) * rng.standard_normal(x.shape), a(t)
+
+
+def test_a_varying_coefficient_is_recovered_and_its_band_covers_it():
+    t, x, truth = _varying_oscillator(0.01)
+    theta = np.column_stack([np.ones(len(t)), x])  # library 1, x, y
+    scale = np.sqrt(np.mean(np.gradient(x, t, axis=0) ** 2, axis=0))
+    vc = VaryingCoefficients([x], [t], [theta], scale, 0.01 * x.std(axis=0))
+    choice = vc.choose(np.ones((2, 3), bool), np.ones((2, 3), bool), np.ones(2, bool),
+                       np.ones((2, 3), bool), 0.05)
+    assert (choice[0].fit.support, choice[0].fit.varying) == ((2,), (2,))
+    assert (choice[1].fit.support, choice[1].fit.varying) == ((1,), ())
+    mean, sd = choice[0].fit.series(*vc.basis)
+    estimate = mean[:, 0] * scale[0]  # the feature "y" is unscaled here
+    sd = sd[:, 0] * scale[0]
+    assert np.sqrt(np.mean((estimate - truth) ** 2)) < 0.01  # 2% of its range
+    assert np.mean(np.abs(estimate - truth) <= 2 * sd) > 0.85
+    assert choice[1].fit.constants[0] * scale[1] == pytest.approx(-1.0, abs=0.005)
+
+
+def test_resolution_follows_the_noise():
+    t, clean, _ = _varying_oscillator(0.0)
+    _, noisy, _ = _varying_oscillator(0.05)
+    assert resolution(clean, t)[0] > resolution(noisy, t)[0]
