@@ -83,10 +83,16 @@ def score(coefs, case, data, t_end):
                  else midpoint_crossings(coefs, varying))
         row["switch_err"] = float(switch_time_errors(found, sw).max() / t_end)
         row["switches_found"] = int(found.size)
-    if np.any(coefs.std > 0):
-        inside = [np.mean(np.abs(coefs.term(s, f) - v) <= 2 * coefs.term_std(s, f) + 1e-12)
-                  for (s, f), v in varying.items()]
-        row["coverage"] = float(np.mean(inside))
+    if np.any(coefs.upper > coefs.lower):
+        inside, ratio = [], []
+        for (s, f), v in varying.items():
+            lo, hi = coefs.term_band(s, f)
+            inside.append(np.mean((lo - 1e-12 <= v) & (v <= hi + 1e-12)))
+            error = np.sqrt(np.mean((coefs.term(s, f) - v) ** 2))
+            ratio.append(float(np.mean(0.5 * (hi - lo))) / max(error, 1e-300))
+        row["coverage"] = float(np.min(inside))  # the worst varying coefficient
+        row["width_ratio"] = float(np.max(ratio))
+    row["doubts"] = list(coefs.doubts)
     return row
 
 

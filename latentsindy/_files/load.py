@@ -22,9 +22,10 @@ def load(path):
     try:
         meta, arrays = read(path)
         if meta.get("format") == model_file.FORMAT:
-            if meta.get("version") != model_file.VERSION:
+            if meta.get("version") not in model_file.READABLE:
                 raise Refused(f"DynamicSINDy file version {meta.get('version')!r}; this "
-                              f"latentsindy reads version {model_file.VERSION}")
+                              f"latentsindy reads versions "
+                              f"{', '.join(map(str, model_file.READABLE))}")
             return model_file.read_model(meta, arrays)
         if (meta.get("format") != result_file.FORMAT
                 or meta.get("version") not in result_file.READABLE):

@@ -18,6 +18,7 @@ import torch
 
 from .._core import saving
 from .._core.library import fit_library
+from .._stage_one.assessment import Assessment
 from .._stage_one.estimator import DynamicSINDy, sample_positions
 from .._stage_one.sequential_model import SequentialCoefficientModel
 from .._stage_one.training import CoefficientModel
@@ -25,8 +26,10 @@ from ..generators import build_generator, generator_class
 from .container import write
 
 FORMAT = "latentsindy.DynamicSINDy"
-VERSION = 1
-_SETTINGS = ("generator", "generator_options", "training", "support", "time_varying", "seed")
+VERSION = 2  # 2: pinned constants, the structure setting, the exact model's band
+READABLE = (1, 2)
+_SETTINGS = ("generator", "generator_options", "training", "structure", "support",
+             "time_varying", "seed")
 
 
 def _library_spec(library):
@@ -84,6 +87,10 @@ def save_model(model: DynamicSINDy, path) -> None:
     if meta["online"]:
         arrays |= {"track_mean": m.track_mean.cpu().numpy(),
                    "track_std": m.track_std.cpu().numpy()}
+    exact = model.assessment_
+    arrays |= {"exact_mean": exact.mean, "exact_sd": exact.sd, "exact_lower": exact.lower,
+               "exact_upper": exact.upper}
+    meta["doubts"] = list(exact.doubts)
     write(path, json.dumps(meta, default=float), arrays)
 
 
@@ -91,10 +98,14 @@ def read_model(meta, arrays) -> DynamicSINDy:
     """Rebuild a DynamicSINDy from a file's contents (see :func:`latentsindy.load`)."""
     s = meta["settings"]
     est = DynamicSINDy(None, generator=s["generator"], generator_options=s["generator_options"],
-                       training=s["training"], support=s["support"],
-                       time_varying=s["time_varying"], verbose=False, seed=int(s["seed"]))
+                       training=s["training"], structure=s.get("structure", "generator"),
+                       support=s["support"], time_varying=s["time_varying"], verbose=False,
+                       seed=int(s["seed"]))
     weights = {k[len("weight:"):]: torch.as_tensor(v) for k, v in arrays.items()
                if k.startswith("weight:")}
+    if "pin_mask" not in weights:  # version 1: nothing was pinned
+        weights["pin_mask"] = torch.zeros_like(weights["support"], dtype=torch.bool)
+        weights["pin_value"] = torch.zeros_like(weights["constants"])
     inputs = torch.as_tensor(arrays["encoder_inputs"], dtype=torch.float32)
     support = weights["support"].bool()
     sequential = generator_class(est.generator).sequential
@@ -124,5 +135,11 @@ def read_model(meta, arrays) -> DynamicSINDy:
     est.n_parameters_ = int(meta["n_parameters"])
     est.restored_terms_ = [(est.state_names_[i], est.feature_names_[j]) for i, j in model.restored]
     est.history_ = meta["history"]
+    est.assessment_ = None  # version 1: no exact model (band: mean +- 2 std)
+    if "exact_mean" in arrays:
+        est.assessment_ = Assessment(arrays["exact_mean"], arrays["exact_sd"],
+                                     arrays["exact_lower"], arrays["exact_upper"],
+                                     tuple(str(d) for d in meta["doubts"]))
+    est.doubts_ = () if est.assessment_ is None else est.assessment_.doubts
     est.model_ = model
     return est

@@ -21,8 +21,8 @@ from .container import Refused, write
 from .expressions import from_tree, number, to_tree
 
 FORMAT = "latentsindy.HiddenDiscovery"
-VERSION = 4  # 3 added ``doubts``, 4 ``data_use``; versions 2 and 3 still load
-READABLE = (2, 3, 4)
+VERSION = 5  # 3 added ``doubts``, 4 ``data_use``, 5 stage one's band and doubts
+READABLE = (2, 3, 4, 5)
 
 
 def _hidden_state(h):
@@ -51,6 +51,7 @@ def save_result(result: HiddenDiscovery, path) -> None:
         "refinement": None if result.refinement is None else vars(result.refinement),
         "stage_one_states": list(result.coefficients.state_names),
         "stage_one_features": list(result.coefficients.feature_names),
+        "stage_one_doubts": list(result.coefficients.doubts),
         "n_trajectories": len(result.all_times),
         "data_use": None if result.data_use is None else {
             "recordings": result.data_use.recordings, "segments": result.data_use.segments,
@@ -66,7 +67,8 @@ def save_result(result: HiddenDiscovery, path) -> None:
                    f"hidden_initial_{k}": result.hidden_initial[k]}
     c = result.coefficients
     arrays |= {"coef_times": c.times, "coef_mean": c.mean, "coef_samples": c.samples,
-               "coef_support": c.support, "coef_time_varying": c.time_varying}
+               "coef_support": c.support, "coef_time_varying": c.time_varying,
+               "coef_lower": c.lower, "coef_upper": c.upper}
     write(path, json.dumps(meta), arrays)
 
 
@@ -118,7 +120,9 @@ def read_result(meta, arrays) -> HiddenDiscovery:
         coef_times, arrays["coef_mean"], arrays["coef_samples"],
         _names(meta["stage_one_states"], "stage_one_states"),
         [str(f) for f in meta["stage_one_features"]], arrays["coef_support"],
-        arrays["coef_time_varying"])
+        arrays["coef_time_varying"], lower=arrays.get("coef_lower"),
+        upper=arrays.get("coef_upper"),
+        doubts=[str(d) for d in meta.get("stage_one_doubts", [])])
     refinement = meta["refinement"]
     return HiddenDiscovery(
         times[0], observed_series[0], hidden_series[0], arrays["hidden_std"], observed, hidden,

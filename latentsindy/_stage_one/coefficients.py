@@ -33,6 +33,20 @@ class CoefficientSeries:
     noise_around_smooth_mean : ndarray, shape (n_states, n_features)
         The paper's second estimate: std over time of each sample around its own
         smoothed version, averaged over samples.
+    lower, upper : ndarray, shape (n_times, n_states, n_features)
+        The uncertainty band. From :class:`DynamicSINDy`: the 95% interval of an
+        exact Bayesian varying-coefficient model of the data (integral form,
+        adaptive smoothness, noise level from the data) on the fitted structure,
+        joined with those of every structure that explains the data as well, and
+        widened to hold the generator's mean +- 2 posterior std. It covers noise,
+        smoothing bias at transitions (the exact model smooths adaptively and its
+        posterior spreads there) and doubt about the structure; it does not cover a
+        wrong library or a derivative-free misfit the library cannot express (see
+        ``doubts``), nor white noise carried by the coefficients themselves
+        (:meth:`DynamicSINDy.coefficient_noise`). Elsewhere (baselines, files
+        without it): mean +- 2 ``std``.
+    doubts : tuple of str
+        Checks the fit failed, in words (empty: none).
     """
 
     times: np.ndarray
@@ -45,27 +59,46 @@ class CoefficientSeries:
     time_varying: np.ndarray
     noise_across_samples: np.ndarray
     noise_around_smooth_mean: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    doubts: tuple[str, ...] = ()
 
     @classmethod
     def from_samples(cls, times, mean, samples, state_names, feature_names, support,
-                     time_varying) -> CoefficientSeries:
+                     time_varying, *, lower=None, upper=None,
+                     doubts=()) -> CoefficientSeries:
         std = samples.std(axis=0) if samples.shape[0] > 1 else np.zeros_like(mean)
         width = max(5, (len(times) // 50) | 1)
         smooth = uniform_filter1d(samples, size=width, axis=1, mode="nearest")
         around = (samples - smooth).std(axis=1).mean(axis=0)
+        lower = mean - 2.0 * std if lower is None else lower
+        upper = mean + 2.0 * std if upper is None else upper
         arrays = [np.array(a, copy=True) for a in (times, mean, std, samples, support,
-                                                   time_varying, std.mean(axis=0), around)]
+                                                   time_varying, std.mean(axis=0), around,
+                                                   lower, upper)]
         for a in arrays:
             a.setflags(write=False)
-        t, m, s, smp, sup, tv, n1, n2 = arrays
-        return cls(t, m, s, smp, tuple(state_names), tuple(feature_names), sup, tv, n1, n2)
+        t, m, s, smp, sup, tv, n1, n2, lo, hi = arrays
+        return cls(t, m, s, smp, tuple(state_names), tuple(feature_names), sup, tv, n1, n2,
+                   lo, hi, tuple(str(d) for d in doubts))
+
+    @property
+    def half_width(self) -> np.ndarray:
+        """Half the band's width, (n_times, n_states, n_features)."""
+        return 0.5 * (self.upper - self.lower)
 
     def term(self, state: str, feature: str) -> np.ndarray:
         """Mean series of one coefficient, e.g. ``term("x", "y")``."""
         return self.mean[:, self._state(state), self._feature(feature)]
 
     def term_std(self, state: str, feature: str) -> np.ndarray:
+        """Posterior std of one coefficient over time (the generator's spread)."""
         return self.std[:, self._state(state), self._feature(feature)]
+
+    def term_band(self, state: str, feature: str) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) of one coefficient's band over time."""
+        i, j = self._state(state), self._feature(feature)
+        return self.lower[:, i, j], self.upper[:, i, j]
 
     def _state(self, name):
         if name not in self.state_names:
@@ -175,4 +208,7 @@ class CoefficientSeries:
                 parts.append(f"{f}: mean {m.mean():.4g}, range [{m.min():.4g}, {m.max():.4g}] "
                              f"({kind})")
             lines.append(f"  d{s}/dt: " + ("; ".join(parts) if parts else "0"))
+        if self.doubts:
+            lines.append("  DOUBTS:")
+            lines += [f"    - {d}" for d in self.doubts]
         return "\n".join(lines)

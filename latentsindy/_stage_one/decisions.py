@@ -11,6 +11,10 @@ coefficients correct:
 * :func:`restore_absorbed_terms`: a pruned term whose role a varying coefficient has
   absorbed comes back as a constant.
 
+Then, by default, the exact varying-coefficient model decides (:mod:`.structure`):
+:func:`adopt_structure` sets every equation's support and varying terms to its choice
+and pins the constants at its estimates; the generator's refit learns the variation.
+
 All accumulate normal equations block by block, so memory does not depend on the
 series length.
 """
@@ -207,3 +211,38 @@ def _explained(gram, cross, cols):
     g = g + 1e-10 * torch.trace(g) * torch.eye(len(cols), dtype=g.dtype, device=g.device)
     coef = torch.linalg.solve(g, cross[cols])
     return float(cross[cols] @ coef), coef
+
+
+PIN_PRECISION = 10.0  # pin a constant the exact model knows to 10% (|value| / sd)
+
+
+@torch.no_grad()
+def adopt_structure(model, choices) -> list[tuple[int, int]]:
+    """Set each equation's support and varying terms to the exact model's choice
+    (:class:`~.structure.EquationChoice` per equation, None: leave it) and pin the
+    constant terms that it determines to 10% at its estimates (normalised units); the
+    others are left to the generator (a freely varying term can make constants
+    unidentified, and the exact model's value is then its prior's). Returns the
+    (equation, term) pairs added to the support."""
+    added = []
+    n_features = model.support.shape[1]
+    for i, choice in enumerate(choices):
+        if choice is None:
+            continue
+        fit = choice.fit
+        support, varying = set(fit.support), set(fit.varying)
+        for j in range(n_features):
+            if j in support and not bool(model.support[i, j]):
+                model.restore_constant(i, j)
+                added.append((i, j))
+            elif j not in support:
+                model.support[i, j] = False
+        for j in varying:
+            if not float(model.time_varying[i, j]):
+                model.free_variation(i, j)
+        for j, value, sd in zip(fit.constant, fit.constants, fit.constant_sd(), strict=True):
+            if abs(float(value)) >= PIN_PRECISION * float(sd):
+                model.pin_constant(i, j, float(value))
+            else:
+                model.time_varying[i, j] = 0.0
+    return added

@@ -15,7 +15,10 @@ from .._core.derivatives import differentiate, noise_level
 from .._core.library import check_library, fit_library
 from .._core.local_fits import positions as time_positions
 from ..generators import build_generator, generator_class
+from .assessment import assess
 from .coefficients import CoefficientSeries
+from .decisions import adopt_structure
+from .evidence import VaryingCoefficients
 from .sequential import (
     SequentialCoefficientModel,
     SequentialTrainingOptions,
@@ -57,6 +60,14 @@ class DynamicSINDy:
         ``"timevae"``, :class:`SequentialTrainingOptions` for ``"hypersindy"``.
     differentiation_method : pysindy differentiation object, optional
         Used when ``x_dot`` is not given (default: a noise-adaptive Savitzky-Golay).
+    structure : {"evidence", "generator"}
+        Who decides which terms exist and which vary. ``"evidence"`` (default): after
+        the generator's support phase, an exact Bayesian varying-coefficient model on
+        the integral form of the data scores the structures near the generator's and
+        the best one is refitted, its constants pinned at the exact model's values
+        (a generator's variation can stand in for a missing term; the exact model's
+        evidence cannot be fooled that way). ``"generator"``: the generator's own
+        pruning and variation (the seed paper's method).
     support : dict or bool array, optional
         Fixed structure, e.g. ``{"x": ["y"]}`` (``xdot = c(t) y``); equations not
         named are found by sparsity. A bool array of shape (n_states, n_features)
@@ -93,13 +104,14 @@ class DynamicSINDy:
     """
 
     def __init__(self, library=None, *, generator="timevae", generator_options=None,
-                 training=None, differentiation_method=None, support=None,
-                 time_varying=None, device="cpu", verbose=True, seed=0):
+                 training=None, differentiation_method=None, structure="evidence",
+                 support=None, time_varying=None, device="cpu", verbose=True, seed=0):
         self.library = library
         self.generator = generator
         self.generator_options = generator_options
         self.training = training
         self.differentiation_method = differentiation_method
+        self.structure = structure
         self.support = support
         self.time_varying = time_varying
         self.device = device
@@ -137,6 +149,8 @@ class DynamicSINDy:
             raise TypeError(f"seed must be a non-negative int; got {self.seed!r}.")
         if self.seed < 0:
             raise ValueError(f"seed must be a non-negative int; got {self.seed}.")
+        if self.structure not in STRUCTURES:
+            raise ValueError(f"structure must be one of {STRUCTURES}; got {self.structure!r}.")
         if x_dot is None:
             method = copy.deepcopy(self.differentiation_method)  # never mutate the user's
             xdots, noise_std, weights = differentiate(method, trajs, times)
@@ -171,6 +185,15 @@ class DynamicSINDy:
         xdot_n = as_t(xdot / self.derivative_scale_)
         weights_t = as_t(np.stack(weights))
         inputs = as_t(_encoder_inputs(np.stack(trajs), xdot).transpose(0, 2, 1))
+        exact = VaryingCoefficients(trajs, times, [th / self.feature_scale_ for th in thetas],
+                                    self.derivative_scale_, noise_level(trajs, times))
+        choices = []
+
+        def decide(model):  # between the generator's phases
+            choices.append(exact.choose(model.support.cpu().numpy(),
+                                        model.time_varying.cpu().numpy() > 0, free_rows,
+                                        varying, options.threshold))
+            adopt_structure(model, choices[-1])
 
         with _seeded(self.seed, dev):  # repeatable, and the caller's RNG state is untouched
             gen = build_generator(self.generator, inputs.shape[1], support.size,
@@ -187,7 +210,8 @@ class DynamicSINDy:
                               torch.as_tensor(varying, dtype=torch.float32)).to(dev)
             self.history_ = fit_fn(model, theta_n, xdot_n, weights_t, inputs,
                                    self.noise_variance_, torch.as_tensor(free_rows, device=dev),
-                                   options, self.verbose)
+                                   options, self.verbose,
+                                   decide if self.structure == "evidence" else None)
         model.eval()
         self.encoder_inputs_ = inputs
         self.library_ = library
@@ -200,6 +224,18 @@ class DynamicSINDy:
         self.time_varying_ = model.time_varying.cpu().numpy().astype(bool) & self.support_
         self.n_parameters_ = sum(p.numel() for p in gen.parameters())
         self.restored_terms_ = [(names[i], feature_list[j]) for i, j in model.restored]
+        with torch.no_grad():
+            mean_n = model(inputs, 0)[0][0].cpu().double().numpy()
+        if not choices:  # the generator decided: ask the exact model anyway (doubts)
+            choices.append(exact.choose(self.support_, self.time_varying_, free_rows,
+                                        varying, options.threshold))
+        scale = self.derivative_scale_[:, None] / self.feature_scale_[None, :]
+        self.assessment_ = assess(exact, self.support_, self.time_varying_, choices[-1],
+                                  mean_n * scale, options.threshold, names, feature_list,
+                                  scale, _misfit(theta / self.feature_scale_, xdot,
+                                                 np.stack(weights), mean_n, noise_std,
+                                                 self.derivative_scale_))
+        self.doubts_ = self.assessment_.doubts
         self.model_ = model  # last: a fit that fails midway leaves the estimator unfitted
         return self
 
@@ -227,9 +263,17 @@ class DynamicSINDy:
         scale = self.derivative_scale_[:, None] / self.feature_scale_[None, :]
         samples = samples.cpu().double().numpy() * scale
         mean = mean[0].cpu().double().numpy() * scale
+        std = samples.std(axis=0) if samples.shape[0] > 1 else np.zeros_like(mean)
+        lower, upper, doubts = None, None, ()
+        exact = getattr(self, "assessment_", None)
+        if exact is not None:  # the band: the exact model's, widened to hold ours
+            lower = np.minimum(exact.lower, mean - 2.0 * std) * self.support_
+            upper = np.maximum(exact.upper, mean + 2.0 * std) * self.support_
+            doubts = exact.doubts
         return CoefficientSeries.from_samples(self.times_, mean, samples, self.state_names_,
                                               self.feature_names_, self.support_,
-                                              self.time_varying_)
+                                              self.time_varying_, lower=lower, upper=upper,
+                                              doubts=doubts)
 
     def predict(self, coefficients: CoefficientSeries | None = None) -> list[np.ndarray]:
         """Derivatives Theta(x) Xi(t) on the training trajectories, one array each."""
@@ -289,7 +333,8 @@ class DynamicSINDy:
 
 
 _PARAMS = ("library", "generator", "generator_options", "training", "differentiation_method",
-           "support", "time_varying", "device", "verbose", "seed")
+           "structure", "support", "time_varying", "device", "verbose", "seed")
+STRUCTURES = ("evidence", "generator")
 
 
 @contextlib.contextmanager
@@ -306,6 +351,15 @@ def sample_positions(times, device):
     on a uniform grid."""
     pos = time_positions(times)
     return None if pos is None else torch.as_tensor(pos, dtype=torch.float32, device=device)
+
+
+def _misfit(theta, xdot, weights, mean_n, noise_std, derivative_scale):
+    """Each equation's weighted mean squared derivative misfit (normalised) over its
+    derivative noise variance."""
+    pred = np.einsum("btf,tnf->btn", theta, mean_n)
+    resid = xdot / derivative_scale - pred
+    noise = np.maximum((np.asarray(noise_std) / derivative_scale) ** 2, 1e-12)
+    return np.mean(weights * resid**2, axis=(0, 1)) / noise
 
 
 def _encoder_inputs(x, xdot):

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._core.figures import BAND, finish, pyplot, truth_array
+from .._core.figures import finish, pyplot, truth_array
 
 
 def plot_coefficients(series, truth=None, *, terms=None, figsize=None, path=None):
-    """Coefficients over time with bands of +- 2 posterior standard deviations.
+    """Coefficients over time with their uncertainty band (``series.lower/upper``).
 
     ``terms``: (state, feature) pairs (default every active one); ``truth``: a dict
     {(state, feature): array over ``series.times``} drawn dashed. Switch times
@@ -28,10 +28,10 @@ def plot_coefficients(series, truth=None, *, terms=None, figsize=None, path=None
                              figsize=figsize or (9.0, 1.9 * len(terms) + 0.6))
     t = series.times
     for ax, (state, feature) in zip(axes[:, 0], terms, strict=True):
-        m, s = series.term(state, feature), series.term_std(state, feature)
+        m = series.term(state, feature)
+        lo, hi = series.term_band(state, feature)
         ax.plot(t, m, color="C0", lw=1.5, label="posterior mean")
-        ax.fill_between(t, m - BAND * s, m + BAND * s, color="C0", alpha=0.25, lw=0,
-                        label=f"+- {BAND:g} std")
+        ax.fill_between(t, lo, hi, color="C0", alpha=0.25, lw=0, label="band (95%)")
         if (state, feature) in truth:
             ax.plot(t, truth_array(truth[(state, feature)], len(t), "truth")[:, 0], "k--",
                     lw=1, label="truth")
@@ -40,4 +40,7 @@ def plot_coefficients(series, truth=None, *, terms=None, figsize=None, path=None
         ax.set_ylabel(f"d{state}/dt: {feature}", fontsize=8)
         ax.legend(loc="upper right", fontsize=7)
     axes[-1, 0].set_xlabel("t")
+    if series.doubts:
+        fig.suptitle("NOT CONFIDENT: " + "; ".join(series.doubts)[:300], fontsize=7,
+                     color="C3", wrap=True)
     return finish(fig, path)

@@ -45,8 +45,9 @@ def _epochs(steps, per_epoch, minimum):
 
 
 def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
-                     options: SequentialTrainingOptions, verbose: bool):
-    """Two-phase windowed training in place; returns the loss history (one dict per step)."""
+                     options: SequentialTrainingOptions, verbose: bool, decide=None):
+    """Two-phase windowed training in place; returns the loss history (one dict per step).
+    ``decide(model)``, if given, runs between the phases, after the restoring checks."""
     chunk = model.generator.chunk
     n_times = theta.shape[1]
     window = max(chunk, options.window - options.window % chunk)
@@ -89,6 +90,8 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
                                            options.threshold, free_rows)
             model.restored += restore_absorbed_terms(model, theta, xdot, weights, inputs,
                                                      options.threshold, free_rows)
+            if decide is not None:
+                decide(model)
             if options.mode == "online":
                 history += _online_pass(model, theta, xdot, weights, inputs, noise_var, starts,
                                         window, options, bayes, bar)

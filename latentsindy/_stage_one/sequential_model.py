@@ -50,7 +50,7 @@ class SequentialCoefficientModel(CoefficientModel):
         n_states, n_features = self.constants.shape
         series = series.reshape(series.shape[0], series.shape[1], n_states, n_features)
         varying = self.time_varying * self.gates(stochastic, self.log_alpha_var)
-        ungated = self.support * (self.constants + varying * series)
+        ungated = self.support * (self.effective_constants() + varying * series)
         self.last_size = ungated.abs().mean(dim=(0, 1)) * self.gates(False).detach()
         return ungated * self.gates(stochastic), kl, state
 
@@ -93,6 +93,18 @@ class SequentialCoefficientModel(CoefficientModel):
     def freeze_constant(self, i: int, j: int, value: float) -> None:
         gate = float(self.gates(False)[i, j])  # the read-out multiplies by the gate
         super().freeze_constant(i, j, value / gate if gate > 0 else value)
+
+    @torch.no_grad()
+    def pin_constant(self, i: int, j: int, value: float) -> None:
+        self.log_alpha[i, j] = max(float(self.log_alpha[i, j]), _LOG_ALPHA0)  # gate open
+        gate = float(self.gates(False)[i, j])
+        super().pin_constant(i, j, value / gate if gate > 0 else value)
+
+    @torch.no_grad()
+    def free_variation(self, i: int, j: int) -> None:
+        """Let term ``j`` of equation ``i`` vary (its variation gate reopens)."""
+        self.time_varying[i, j] = 1.0
+        self.log_alpha_var[i, j] = _LOG_ALPHA0
 
     def forward(self, inputs, n_samples: int):
         """Per-step coefficients (S, T, n, F) and KL, as :class:`CoefficientModel`."""

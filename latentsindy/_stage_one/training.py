@@ -119,7 +119,11 @@ def make_training_options(given, cls=None, generator="timevae"):
 
 
 class CoefficientModel(nn.Module):
-    """Xi(t) = support * (constants + time_varying * generator(x)), normalised units."""
+    """Xi(t) = support * (constants + time_varying * generator(x)), normalised units.
+
+    A constant can be pinned (:meth:`pin_constant`): it then keeps its value whatever
+    the optimiser does (the exact model's estimate, see ``decisions.adopt_structure``).
+    """
 
     def __init__(self, generator, constants, support, time_varying):
         super().__init__()
@@ -127,7 +131,21 @@ class CoefficientModel(nn.Module):
         self.constants = nn.Parameter(constants.clone())
         self.register_buffer("support", support.clone())
         self.register_buffer("time_varying", time_varying.clone())
+        self.register_buffer("pin_mask", torch.zeros_like(support, dtype=torch.bool))
+        self.register_buffer("pin_value", torch.zeros_like(constants))
         self.restored = []  # (equation, term) pairs returned by restore_terms
+
+    def effective_constants(self) -> torch.Tensor:
+        """The constants, pinned ones replaced by their pinned values."""
+        return torch.where(self.pin_mask, self.pin_value, self.constants)
+
+    @torch.no_grad()
+    def pin_constant(self, i: int, j: int, value: float) -> None:
+        """Fit term ``j`` of equation ``i`` as the constant ``value``, not trained."""
+        self.time_varying[i, j] = 0.0
+        self.pin_mask[i, j] = True
+        self.pin_value[i, j] = value
+        self.constants[i, j] = value
 
     @torch.no_grad()
     def mean_blocks(self, inputs):
@@ -148,11 +166,16 @@ class CoefficientModel(nn.Module):
         self.time_varying[i, j] = 0.0
         self.constants[i, j] = value
 
+    @torch.no_grad()
+    def free_variation(self, i: int, j: int) -> None:
+        """Let term ``j`` of equation ``i`` vary."""
+        self.time_varying[i, j] = 1.0
+
     def forward(self, inputs, n_samples: int):
         series, kl = self.generator.sample(inputs, n_samples)
         n_states, n_features = self.constants.shape
         series = series.reshape(series.shape[0], series.shape[1], n_states, n_features)
-        xi = self.support * (self.constants + self.time_varying * series)
+        xi = self.support * (self.effective_constants() + self.time_varying * series)
         return xi, kl
 
 
@@ -243,8 +266,9 @@ def _cosine(step, total, lr0, lr_min):
 
 
 def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
-          options: TrainingOptions, verbose: bool):
-    """Two-phase training in place; returns the loss history (one dict per step)."""
+          options: TrainingOptions, verbose: bool, decide=None):
+    """Two-phase training in place; returns the loss history (one dict per step).
+    ``decide(model)``, if given, runs between the phases, after the restoring checks."""
     history = []
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=options.learning_rate)
@@ -256,6 +280,8 @@ def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
                                            options.threshold, free_rows)
             model.restored += restore_absorbed_terms(model, theta, xdot, weights, inputs,
                                                      options.threshold, free_rows)
+            if decide is not None:
+                decide(model)
             opt = torch.optim.Adam(params, lr=options.learning_rate / 3)
         lr0 = opt.param_groups[0]["lr"]
         for step in range(steps):

@@ -172,6 +172,7 @@ class EquationModel:
     def __init__(self, gram: EquationGram, noise_variance: float):
         self.g = gram
         scale = max(float(noise_variance), 1e-300)
+        self.noise_variance = scale
         # level priors in units of the noise precision: N(0, LEVEL_SD^2) at s2 = scale
         self.level = scale / LEVEL_SD**2
         self.ridge = self.level / gram.n_knots  # a series' level is the sum of its knots

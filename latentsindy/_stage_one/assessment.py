@@ -1,0 +1,157 @@
+"""What the exact varying-coefficient model says about a finished fit: the band's
+ingredients and the doubts.
+
+The generator's posterior spread is the uncertainty of its own smooth fit given its
+structure: it ignores smoothing bias at transitions and which structure is right, and
+holds the truth at a median 21% of the samples of the paper's experiments. The exact
+model (:mod:`.vcm_fit`) is a proper Bayesian posterior of the same coefficients on the
+integral form of the data, with adaptive smoothness, whose noise level is estimated
+from the data themselves. Its 95% interval, and those of every structure that explains
+the data as well (within a Bayes factor of 20), make the band's core
+(:class:`Assessment`: ``lower``/``upper``); :meth:`DynamicSINDy.coefficients` widens it
+to hold the generator's mean and spread too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .structure import LOG_PRIOR_ODDS, EquationChoice, penalised
+
+BAND = 2.0  # standard deviations: a 95% interval
+AGREE = 0.9  # R^2 of the generator's varying coefficient against the exact model's
+MISFIT = 4.0  # exact model's noise variance over the measurement noise's
+NEAR_THRESHOLD = 1.5  # a term this close to the threshold (in its multiples)
+
+
+@dataclass(frozen=True)
+class Assessment:
+    """The exact model's posterior of a fit's coefficients (physical units) and its
+    doubts.
+
+    Attributes
+    ----------
+    mean, sd : ndarray (n_times, n_states, n_features)
+        Posterior mean and standard deviation on the fitted structure (0 off support).
+    lower, upper : ndarray (n_times, n_states, n_features)
+        Union of the 95% intervals of the fitted structure and of every structure that
+        explains the data as well (a term absent from one of them: 0 is inside).
+    doubts : tuple of str
+    """
+
+    mean: np.ndarray
+    sd: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    doubts: tuple[str, ...]
+
+
+def assess(exact, support, varying, choices, generator_mean, threshold, states, features,
+           scale, generator_misfit=None) -> Assessment:
+    """Assess a finished fit.
+
+    Parameters
+    ----------
+    exact : VaryingCoefficients
+    support, varying : (S, F) bool arrays of the fit
+    choices : list of EquationChoice (None entries allowed), or None
+        The search's result; without it the search is run here (for doubts only).
+    generator_mean : (T, S, F) the generator's mean coefficients (physical units)
+    threshold : float
+    states, features : names
+    scale : (S, F) physical units per normalised unit
+    generator_misfit : (S,) generator's mean squared derivative misfit over the
+        derivative noise variance, optional
+    """
+    n_times = generator_mean.shape[0]
+    mean = np.zeros_like(generator_mean)
+    sd = np.zeros_like(generator_mean)
+    lower, upper = np.zeros_like(generator_mean), np.zeros_like(generator_mean)
+    doubts = []
+    basis = exact.basis
+    for i, state in enumerate(states):
+        if not support[i].any():
+            continue
+        fit = exact.fit(i, support[i], varying[i])
+        m, s = _posterior(fit, basis, n_times, len(features))
+        mean[:, i], sd[:, i] = m * scale[i], s * scale[i]
+        lower[:, i], upper[:, i] = (m - BAND * s) * scale[i], (m + BAND * s) * scale[i]
+        choice = choices[i] if choices is not None else None
+        for rival in (choice.rivals if choice is not None else ()):
+            rm, rs = _posterior(rival, basis, n_times, len(features))
+            lower[:, i] = np.minimum(lower[:, i], (rm - BAND * rs) * scale[i])
+            upper[:, i] = np.maximum(upper[:, i], (rm + BAND * rs) * scale[i])
+            doubts.append(f"d{state}/dt: {_describe(rival, fit, features)} explains the data "
+                          f"as well (Bayes factor under 20): the structure is uncertain")
+        if choice is not None and (choice.fit.support, choice.fit.varying) != (
+                fit.support, fit.varying):
+            gap = penalised(choice.fit) - penalised(fit)
+            if gap > LOG_PRIOR_ODDS:
+                doubts.append(f"d{state}/dt: the exact model prefers "
+                              f"{_describe(choice.fit, fit, features)} (log Bayes factor "
+                              f"{gap:.0f})")
+        doubts += _equation_doubts(i, state, fit, exact, generator_mean, mean, sd, threshold,
+                                   features, scale, generator_misfit)
+    return Assessment(mean, sd, lower, upper, tuple(doubts))
+
+
+def _posterior(fit, basis, n_times, n_features):
+    """(mean, sd) of every coefficient of one equation, normalised: (T, F) each."""
+    m, s = np.zeros((n_times, n_features)), np.zeros((n_times, n_features))
+    if not np.isfinite(fit.score):
+        return m, s
+    series, spread = fit.series(*basis)
+    for a, k in enumerate(fit.varying):
+        m[:, k], s[:, k] = series[:, a], spread[:, a]
+    for c, (j, value) in enumerate(zip(fit.constant, fit.constants, strict=True)):
+        m[:, j], s[:, j] = value, fit.constant_sd()[c]
+    return m, s
+
+
+def _describe(other, fit, features):
+    """How structure ``other`` differs from ``fit``, in words."""
+    parts = []
+    for j in sorted(set(other.support) - set(fit.support)):
+        parts.append(f"with {features[j]}" + (" varying" if j in other.varying else ""))
+    for j in sorted(set(fit.support) - set(other.support)):
+        parts.append(f"without {features[j]}")
+    for j in sorted(set(other.varying) & set(fit.support) - set(fit.varying)):
+        parts.append(f"{features[j]} varying")
+    for j in sorted(set(fit.varying) & set(other.support) - set(other.varying)):
+        parts.append(f"{features[j]} constant")
+    return "a structure " + ", ".join(parts) if parts else "another structure"
+
+
+def _equation_doubts(i, state, fit, exact, generator_mean, mean, sd, threshold, features,
+                     scale, generator_misfit):
+    out = []
+    noise = exact.models[i].noise_variance  # the measurement noise (normalised)
+    if np.isfinite(fit.noise_variance) and fit.noise_variance > MISFIT * noise:
+        out.append(f"d{state}/dt: the fitted equation leaves a misfit of "
+                   f"{fit.noise_variance / noise:.0f} times the measurement noise variance: "
+                   "a term the library lacks, or a state that is not observed")
+    if generator_misfit is not None and generator_misfit[i] > 10.0:
+        out.append(f"d{state}/dt: the generator's derivative misfit is "
+                   f"{generator_misfit[i]:.0f} times the derivative noise variance")
+    for k in fit.support:
+        size = float(np.mean(np.abs(mean[:, i, k]))) / abs(scale[i, k])
+        if size < NEAR_THRESHOLD * threshold:
+            out.append(f"d{state}/dt: {features[k]} explains only {size:.1%} of its equation "
+                       f"(threshold {threshold:.0%}): a small change of the threshold "
+                       "changes the support")
+    for k in fit.varying:
+        gen, ex = generator_mean[:, i, k], mean[:, i, k]
+        if np.std(ex) < threshold * abs(scale[i, k]):  # no material variation to compare
+            continue
+        agree = 1.0 - np.sum((gen - ex) ** 2) / max(float(np.sum((ex - ex.mean()) ** 2)),
+                                                      1e-300)
+        if agree < AGREE:
+            out.append(f"d{state}/dt: the generator's coefficient of {features[k]} disagrees "
+                       f"with the exact model's (R^2 {agree:.2f} against it): one of them "
+                       "misreads the variation; the band holds both")
+    return out
+
+
+__all__ = ["Assessment", "EquationChoice", "assess"]

@@ -1,0 +1,103 @@
+"""Stage one's structure chosen by evidence, its band and its doubts (issue 19).
+
+The paper's Lorenz case that stage one used to lose: rho varies, and a generator drops
+the small constant -y of ydot, letting rho(t) x absorb it. The exact
+varying-coefficient model decides support and variation together.
+"""
+
+import numpy as np
+import pysindy as ps
+import pytest
+from conftest import r2
+
+import latentsindy
+from latentsindy import DynamicSINDy, systems
+
+QUICK = {"support_steps": 300, "refit_steps": 300}
+
+
+@pytest.fixture(scope="module")
+def rho_sigmoid():
+    rho = systems.Sigmoid(24.0, 34.0, at=10.0, sharpness=0.5)
+    data = systems.lorenz(rho=rho, n_times=2000, t_end=20.0, noise=0.01, seed=0)
+    model = DynamicSINDy(ps.PolynomialLibrary(degree=2), training=QUICK, verbose=False)
+    model.fit(data.x, data.t, feature_names=["x", "y", "z"])
+    return data, model, model.coefficients(n_samples=8)
+
+
+def test_a_varying_rho_keeps_every_constant_term(rho_sigmoid):
+    """Exact support (with -y), only rho varies, rho's R^2 >= 0.99, constants within 2%
+    (measured: R^2 0.9996, constants within 0.8%)."""
+    data, model, coefs = rho_sigmoid
+    truth = sorted(k for k, v in data.terms.items() if np.any(v != 0))
+    assert sorted(coefs.active_terms()) == truth
+    rows, cols = np.nonzero(coefs.time_varying)
+    assert [(coefs.state_names[i], coefs.feature_names[j]) for i, j in zip(rows, cols,
+                                                                            strict=True)] == [
+        ("y", "x")]
+    assert r2(coefs.term("y", "x"), data.terms[("y", "x")]) >= 0.99
+    for (s, f), v in data.terms.items():
+        if np.ptp(v) == 0 and v[0] != 0:
+            assert np.mean(coefs.term(s, f)) == pytest.approx(v[0], rel=0.02)
+    assert model.doubts_ == ()
+
+
+def test_the_band_holds_the_truth(rho_sigmoid):
+    """The band holds the true rho(t) at >= 85% of the samples and is no wider than 3x
+    the actual RMS error (measured: 100%, 1.6x)."""
+    data, _, coefs = rho_sigmoid
+    lo, hi = coefs.term_band("y", "x")
+    truth = data.terms[("y", "x")]
+    assert np.mean((lo <= truth) & (truth <= hi)) >= 0.85
+    error = np.sqrt(np.mean((coefs.term("y", "x") - truth) ** 2))
+    assert np.mean(coefs.half_width[:, 1, 1]) <= 3 * error + 0.05
+    np.testing.assert_array_equal(coefs.lower[:, 0, 0], 0.0)  # off support: nothing
+
+
+def test_band_and_doubts_survive_the_model_file(rho_sigmoid, tmp_path):
+    _, model, coefs = rho_sigmoid
+    model.save(tmp_path / "m.npz")
+    back = latentsindy.load(tmp_path / "m.npz").coefficients(n_samples=8)
+    np.testing.assert_allclose(back.lower, coefs.lower)
+    np.testing.assert_allclose(back.upper, coefs.upper)
+    assert back.doubts == coefs.doubts
+
+
+def test_the_generator_can_decide_and_is_checked_anyway():
+    """structure="generator" is the paper's method: the exact model does not change the
+    fit, but says when it prefers another structure. Lorenz with a linear library:
+    timeVAE lets every term vary (x's equation too, whose coefficients are constant)."""
+    data = systems.lorenz(n_times=1000, t_end=10.0, noise=0.01, seed=0)
+    lib = ps.PolynomialLibrary(degree=1)
+    model = DynamicSINDy(lib, structure="generator", training=QUICK, verbose=False)
+    model.fit(data.x, data.t, feature_names=["x", "y", "z"])
+    assert "dx/dt: the exact model prefers a structure x constant, y constant" in " ".join(
+        model.doubts_)
+    assert model.coefficients(2).doubts == model.doubts_
+    assert "DOUBTS" in model.coefficients(2).summary()
+
+
+def test_a_misspelt_structure_option_is_refused():
+    data = systems.harmonic_oscillator(A=-2.0, B=1.0, n_times=200)
+    with pytest.raises(ValueError, match=r"structure must be one of \('evidence', "
+                                         r"'generator'\); got 'evidense'"):
+        DynamicSINDy(structure="evidense", verbose=False).fit(data.x, data.t)
+
+
+def test_slowly_varying_stiffness_band():
+    """The issue's oscillator: a slowly varying stiffness at 2% noise. The old band
+    (posterior spread) was 0.0016 wide against an error of about 0.02 and held the
+    truth at 13% of the samples; the band must hold it at >= 85%, no wider than 3x the
+    RMS error."""
+    t_end = 30.0
+    stiffness = systems.Sinusoid(-1.5, 0.5, 1.0 / 40.0)  # less than a cycle over the series
+    data = systems.harmonic_oscillator(A=stiffness, B=1.0, t_end=t_end, n_times=1500,
+                                       noise=0.02, seed=3)
+    model = DynamicSINDy(ps.PolynomialLibrary(degree=1, include_bias=False), training=QUICK,
+                         verbose=False)
+    coefs = model.fit(data.x, data.t, feature_names=["x", "y"]).coefficients(n_samples=8)
+    truth = data.terms[("x", "y")]
+    lo, hi = coefs.term_band("x", "y")
+    assert np.mean((lo <= truth) & (truth <= hi)) >= 0.85
+    error = np.sqrt(np.mean((coefs.term("x", "y") - truth) ** 2))
+    assert np.mean(0.5 * (hi - lo)) <= 3 * error
