@@ -14,11 +14,12 @@ worst relative error of the constant coefficients, whether the support is exact,
 switch-time error (worst over true switches of the distance to the nearest switch
 found, as a share of the series) with the number of switches found (for a sigmoid: where
 the estimate crosses halfway between its early and late levels), for the segmentations
-the share of samples labelled right, and the wall time. Then the uncertainty experiment
+the share of samples labelled right, and the wall time; for coefficient series the
+band's coverage of the truth (share of samples inside ``lower``..``upper``, worst
+varying coefficient), its mean half-width over the actual RMS error and the number of
+doubts. Then the uncertainty experiment
 (main text 4.2): A and B carry white noise of known standard deviation, and the paper's
-two spread estimates and ``DynamicSINDy.coefficient_noise`` are compared with it. The
-"coverage" column is the share of samples where the posterior band (mean +- 2 std)
-holds the true coefficient.
+two spread estimates and ``DynamicSINDy.coefficient_noise`` are compared with it.
 
 Usage::
 
@@ -167,8 +168,9 @@ def uncertainty(stds, seed=0):
 
 def table(results):
     lines = ["| case | method | worst R^2 varying | constants max err | exact support | "
-             "switch err (share) / found | coverage | time (s) |",
-             "|---|---|---|---|---|---|---|---|"]
+             "switch err (share) / found | band coverage | band / error | doubts | "
+             "time (s) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for case, rows in results.items():
         for method, r in rows.items():
             sw = (f"{r['switch_err']:.1%} / {r['switches_found']}" if "switch_err" in r
@@ -178,11 +180,37 @@ def table(results):
             support = ("yes" if r.get("exact_support") else
                        "no" if "exact_support" in r else "")
             coverage = f"{r['coverage']:.2f}" if "coverage" in r else ""
+            ratio = f"{r['width_ratio']:.2f}" if "width_ratio" in r else ""
+            doubts = str(len(r["doubts"])) if r.get("doubts") else ""
             lines.append(f"| {case} | {method} | {r.get('worst_r2', float('nan')):.3f} | "
                          f"{r.get('const_err', float('nan')):.1%} | {support} | {sw} | "
-                         f"{coverage} | {r['time']:.1f} |")
+                         f"{coverage} | {ratio} | {doubts} | {r['time']:.1f} |")
     return "\n".join(line.replace("| nan |", "| |").replace("| nan% |", "| |")
                      for line in lines)
+
+
+def summary(results):
+    """The bars of issue 19 over dynamic SINDy's rows."""
+    ours = {c: next(r for m, r in rows.items() if m.startswith("dynamic SINDy"))
+            for c, rows in results.items()}
+    best_baseline = {c: max(r["worst_r2"] for m, r in rows.items() if m.startswith("windowed"))
+                     for c, rows in results.items()}
+    good = [c for c, r in ours.items() if r["worst_r2"] > 0.9 and r["exact_support"]]
+    behind = [c for c, r in ours.items() if r["worst_r2"] < best_baseline[c] - 0.05]
+    fitted = [r for c, r in ours.items() if c in good and "coverage" in r]
+    cover = np.array([r["coverage"] for r in fitted])
+    ratio = np.array([r["width_ratio"] for r in fitted])
+    failed = [c for c in ours if c not in good]
+    flagged = [c for c in failed if ours[c]["doubts"]]
+    false = [c for c in good if ours[c]["doubts"]]
+    return "\n".join([
+        f"R^2 > 0.9 and exact support: {len(good)} of {len(ours)}; failures {failed}, "
+        f"{len(flagged)} of them flagged by a doubt",
+        f"more than 0.05 below the better windowed baseline: {behind}",
+        f"band coverage over the {len(fitted)} successes: median {np.median(cover):.3f}, "
+        f"worst {cover.min():.3f}; half-width / RMS error: median {np.median(ratio):.2f}, "
+        f"worst {ratio.max():.2f}",
+        f"successes with a doubt: {false}"])
 
 
 def figure(name, cases, all_series, all_data, folder=FIGURES):
@@ -200,11 +228,12 @@ def figure(name, cases, all_series, all_data, folder=FIGURES):
         (state, feature), truth = next(iter(varying_terms(case, data).items()))
         for ax, method in zip(row, methods, strict=True):
             coefs = all_series[case.name][method]
-            est, band = coefs.term(state, feature), 2 * coefs.term_std(state, feature)
+            est = coefs.term(state, feature)
+            lo, hi = coefs.term_band(state, feature)
             ax.plot(data.t, truth, "k", lw=1.5)
             ax.plot(data.t, est, "C1", lw=1)
-            if np.any(band > 0):
-                ax.fill_between(data.t, est - band, est + band, color="C1", alpha=0.3)
+            if np.any(hi > lo):
+                ax.fill_between(data.t, lo, hi, color="C1", alpha=0.3)
             lo, hi = truth.min(), truth.max()
             ax.set_ylim(lo - 0.6 * (hi - lo), hi + 0.6 * (hi - lo))
             ax.tick_params(labelsize=6)
@@ -238,6 +267,8 @@ def main(quick=False, seed=0):
             figure(group, cases, all_series, all_data, OUT if quick else FIGURES)
     unc = uncertainty(UNCERTAINTY_STDS[1::2] if quick else UNCERTAINTY_STDS, seed)
     print(table(results))
+    print()
+    print(summary(results))
     print("\n| true coefficient std | across samples | around smooth mean | from residuals | "
           "std of (mean - truth) |\n|---|---|---|---|---|")
     for u in unc:

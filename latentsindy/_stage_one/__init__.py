@@ -5,13 +5,20 @@ The modules, in the order a fit runs them:
 
 1. ``estimator``: :class:`DynamicSINDy` validates the input, differentiates it
    (``_core.derivatives``), normalises derivatives and library columns, builds the
-   generator (``latentsindy.generators``: timeVAE or dynamic HyperSINDy) and trains;
+   generator (``latentsindy.generators``: timeVAE or dynamic HyperSINDy) and the exact
+   model (``evidence``), and trains;
 2. ``training`` (timeVAE) or ``sequential`` with ``sequential_model`` and
    ``sequential_options`` (HyperSINDy, window by window): the loss and the two phases,
    support (pruning) then refit;
 3. ``decisions``, between the phases: freezing variation that does not pay, restoring
-   pruned terms the data still need;
-4. ``coefficients``: the result, :class:`CoefficientSeries`, and ``figures`` its plot.
+   pruned terms the data still need, then adopting the exact model's structure;
+4. ``evidence``: the exact varying-coefficient model of the data (``vcm``: B-splines in
+   time and the integral form's normal equations; ``vcm_fit``: evidence and posterior
+   of one equation's structure; ``structure``: the search over support and varying
+   terms);
+5. ``assessment``, after the refit: the exact model's posterior, which makes the band,
+   and the doubts;
+6. ``coefficients``: the result, :class:`CoefficientSeries`, and ``figures`` its plot.
 
 Stage two (``latentsindy._stage_two``) starts from a fitted :class:`DynamicSINDy`.
 """

@@ -72,9 +72,7 @@ def assess(exact, support, varying, choices, generator_mean, threshold, states, 
     doubts = []
     basis = exact.basis
     for i, state in enumerate(states):
-        if not support[i].any():
-            continue
-        fit = exact.fit(i, support[i], varying[i])
+        fit = exact.fit(i, support[i], varying[i])  # an empty support too: xdot = 0
         m, s = _posterior(fit, basis, n_times, len(features))
         mean[:, i], sd[:, i] = m * scale[i], s * scale[i]
         lower[:, i], upper[:, i] = (m - BAND * s) * scale[i], (m + BAND * s) * scale[i]

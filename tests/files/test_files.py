@@ -34,6 +34,9 @@ def test_round_trip_is_exact(saved):
     np.testing.assert_array_equal(back.hidden, result.hidden)
     np.testing.assert_array_equal(back.hidden_std, result.hidden_std)
     np.testing.assert_array_equal(back.coefficients.mean, result.coefficients.mean)
+    np.testing.assert_array_equal(back.coefficients.lower, result.coefficients.lower)
+    np.testing.assert_array_equal(back.coefficients.upper, result.coefficients.upper)
+    assert back.coefficients.doubts == result.coefficients.doubts
     np.testing.assert_array_equal(back.initial_state, result.initial_state)
     assert back.refinement == result.refinement
     assert back.doubts == result.doubts and back.confident == result.confident
@@ -164,6 +167,9 @@ def test_fitted_model_round_trip_gives_the_same_coefficients(generator, training
     np.testing.assert_array_equal(a.samples, b.samples)
     assert (a.state_names, a.feature_names) == (b.state_names, b.feature_names)
     np.testing.assert_array_equal(a.support, b.support)
+    np.testing.assert_array_equal(a.lower, b.lower)
+    np.testing.assert_array_equal(a.upper, b.upper)
+    assert a.doubts == b.doubts == model.doubts_ == back.doubts_
     np.testing.assert_array_equal(model.predict()[0], back.predict()[0])
     assert back.get_params()["generator"] == generator
 

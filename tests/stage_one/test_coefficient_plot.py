@@ -25,3 +25,19 @@ def test_coefficient_plot_marks_switches_and_truth(tmp_path):
     assert (tmp_path / "c.png").exists()
     with pytest.raises(KeyError, match="Unknown feature 'z'"):
         series.plot(terms=[("x", "z")])
+
+
+def test_the_figure_draws_the_band_and_says_the_doubts():
+    t = np.linspace(0.0, 10.0, 101)
+    mean = np.sin(t)[:, None, None]
+    series = CoefficientSeries.from_samples(
+        t, mean, mean[None], ["x"], ["y"], np.ones((1, 1), bool), np.ones((1, 1), bool),
+        lower=mean - 0.3, upper=mean + 0.5, doubts=["dx/dt: the structure is uncertain"])
+    np.testing.assert_allclose(series.half_width, 0.4)
+    fig = series.plot()
+    (ax,) = fig.axes
+    band = ax.collections[0].get_paths()[0].vertices[:, 1]
+    assert band.min() == pytest.approx(-1.3, abs=0.02) and band.max() == pytest.approx(
+        1.5, abs=0.02)
+    assert "the structure is uncertain" in fig._suptitle.get_text()
+    assert "DOUBTS" in series.summary()

@@ -101,3 +101,14 @@ def test_slowly_varying_stiffness_band():
     assert np.mean((lo <= truth) & (truth <= hi)) >= 0.85
     error = np.sqrt(np.mean((coefs.term("x", "y") - truth) ** 2))
     assert np.mean(0.5 * (hi - lo)) <= 3 * error
+
+
+def test_an_equation_the_library_cannot_express_is_a_doubt():
+    """Lorenz with a linear library and no variation allowed in ydot and zdot: their
+    x z and x y terms are missing, and the exact model's misfit says so."""
+    data = systems.lorenz(n_times=1000, t_end=10.0, noise=0.01, seed=0)
+    model = DynamicSINDy(ps.PolynomialLibrary(degree=1), time_varying={"x": ["x"]},
+                         training=QUICK, verbose=False)
+    model.fit(data.x, data.t, feature_names=["x", "y", "z"])
+    misfit = [d for d in model.doubts_ if "misfit of" in d]
+    assert [d.split(":")[0] for d in misfit] == ["dy/dt", "dz/dt"]
