@@ -93,7 +93,7 @@ class VaryingCoefficients:
             if free:
                 starts.append((thresholded_constants(model.g, threshold,
                                                      range(model.g.n_features)), set()))
-            out.append(search.run(starts))
+            out.append(search.run(starts, proposed=sup))
         return out
 
     def fit(self, i, support_row, varying_row) -> EquationFit:

@@ -115,3 +115,24 @@ def test_resolution_follows_the_noise():
     t, clean, _ = _varying_oscillator(0.0)
     _, noisy, _ = _varying_oscillator(0.05)
     assert resolution(clean, t)[0] > resolution(noisy, t)[0]
+
+
+def test_a_hidden_state_is_not_split_into_state_functions():
+    """Prey-only Lotka-Volterra, 8000 samples: xdot = h(t) x. Moving part of h into x^2
+    and x^3 constants makes h a little smoother, which the evidence rewards (27 nats);
+    such constants, which the generator did not propose, must earn their place by
+    halving the variation's degrees of freedom or cutting the misfit, and do not."""
+    from latentsindy import systems
+    from latentsindy._core.derivatives import differentiate, noise_level
+
+    data = systems.lotka_volterra(t_end=80.0, n_times=8000, noise=0.01)
+    x, t = data.x[:, :1], data.t
+    theta = np.column_stack([x[:, 0], x[:, 0] ** 2, x[:, 0] ** 3])
+    xdot = differentiate(None, [x], [t])[0][0]
+    scale = np.sqrt(np.mean(theta**2, axis=0))
+    vc = VaryingCoefficients([x], [t], [theta / scale], np.sqrt(np.mean(xdot**2, axis=0)),
+                             noise_level([x], [t]))
+    proposal = np.array([[True, False, False]])
+    (choice,) = vc.choose(proposal, proposal, np.ones(1, bool), np.ones((1, 3), bool), 0.05)
+    assert (choice.fit.support, choice.fit.varying) == ((0,), (0,))
+    assert choice.rivals == ()
