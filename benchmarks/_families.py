@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pysindy as ps
 import sympy as sp
+from scipy.integrate import solve_ivp
 
 from latentsindy import systems
 
@@ -32,6 +33,10 @@ class Draw:
     hidden_true: np.ndarray  # (T, n_true_hidden), noise-free
     truth: dict[str, Any]  # "rhs": {name: expr}, "hidden": [symbols], "values": {sym: float}
     natural: tuple  # the hidden states in latentsindy's terms (see _scoring.definitions)
+    # score the hidden states by R^2 of each true variable from the hidden *and* observed
+    # states (affine): with several hidden states defined through one another, each is
+    # the true variable up to observed terms (Lorenz from x: h1 = sigma (rho - z))
+    with_observed: bool = False
 
 
 @dataclass(frozen=True)
@@ -137,7 +142,8 @@ def _fitzhugh_nagumo(rng, noise, seed, sampling=None):
 
 
 # ------------------------------------------------------------- Lorenz, z hidden
-def _lorenz_z(rng, noise, seed, sampling=None):
+def _lorenz(rng, noise, seed, sampling):
+    """A Lorenz draw on the attractor (after a burn-in), its truth and values."""
     p = {"sigma": rng.uniform(8.0, 12.0), "rho": rng.uniform(24.0, 32.0),
          "beta": rng.uniform(2.0, 3.2)}
     start = (rng.uniform(-10, 10), rng.uniform(-10, 10), rng.uniform(15, 35))
@@ -149,6 +155,11 @@ def _lorenz_z(rng, noise, seed, sampling=None):
     s, r, b = sp.symbols("sigma rho beta")
     rhs = {x: s * (y - x), y: x * (r - z) - y, z: x * y - b * z}
     values = {s: p["sigma"], r: p["rho"], b: p["beta"]}
+    return p, d, (x, y, z), rhs, values
+
+
+def _lorenz_z(rng, noise, seed, sampling=None):
+    p, d, (_, _, z), rhs, values = _lorenz(rng, noise, seed, sampling)
     return Draw("lorenz_z", p, d.t, d.x[:, :2], d.x_clean[:, :2], ("x", "y"),
                 d.x_clean[:, 2:], {"rhs": rhs, "hidden": [z], "values": values},
                 (("y", "x"),))
@@ -172,6 +183,82 @@ def _modulated(rng, noise, seed, sampling=None):
                 (("x", "x"),))
 
 
+# ------------------------------------------ several hidden states (issue 20's families)
+def _simulated(rhs, x0, t, noise, seed):
+    """Noise-free and noisy trajectories of ``rhs`` (noise as a share of each state's
+    std, as in ``latentsindy.systems``)."""
+    sol = solve_ivp(lambda _, s: rhs(s), (t[0], t[-1]), np.asarray(x0, float), t_eval=t,
+                    method="DOP853", rtol=1e-10, atol=1e-10, max_step=(t[-1] - t[0]) / 200)
+    if not sol.success:
+        raise RuntimeError(f"simulation failed: {sol.message}")
+    clean = sol.y.T
+    rng = np.random.default_rng(seed)
+    return clean, clean + noise * clean.std(axis=0) * rng.standard_normal(clean.shape)
+
+
+def _grid(sampling, t_end):
+    t = _times(sampling, t_end)
+    return np.linspace(0.0, t_end, 2000) if t is None else t
+
+
+def _lorenz_x(rng, noise, seed, sampling=None):
+    """Lorenz seen through x alone: xdot = sigma (y - x) makes h0 = sigma y the
+    coefficient of 1; h0's own equation has x's coefficient h1 = sigma (rho - z)."""
+    p, d, (_, y, z), rhs, values = _lorenz(rng, noise, seed, sampling)
+    return Draw("lorenz_x", p, d.t, d.x[:, :1], d.x_clean[:, :1], ("x",), d.x_clean[:, 1:],
+                {"rhs": rhs, "hidden": [y, z], "values": values},
+                (("x", "1"), ("h0", "x")), with_observed=True)
+
+
+def _driven(rng, noise, seed, sampling=None):
+    """A damped Duffing oscillator pushed by a hidden periodic drive u = F cos(w t + phi)
+    (two hidden states: the drive and its rate; the drive is slower than the
+    oscillator's own period)."""
+    p = {"k": rng.uniform(0.8, 1.5), "c": rng.uniform(0.1, 0.3), "b": rng.uniform(0.5, 1.5),
+         "force": rng.uniform(0.5, 1.2), "omega": rng.uniform(0.25, 0.45),
+         "phase": rng.uniform(0, 2 * np.pi)}
+    t_end = 5 * 2 * np.pi / p["omega"]
+    t = _grid(sampling, t_end)
+    u0 = p["force"] * np.cos(p["phase"])
+    v0 = -p["force"] * p["omega"] * np.sin(p["phase"])
+    x0 = (rng.uniform(-1.5, 1.5), rng.uniform(-1.0, 1.0), u0, v0)
+
+    def rhs(s):
+        x, y, u, v = s
+        return [y, -p["k"] * x - p["c"] * y - p["b"] * x**3 + u, v, -p["omega"] ** 2 * u]
+
+    clean, noisy = _simulated(rhs, x0, t, noise, seed)
+    x, y, u, v = _sym("xyuv")
+    k, c, b, w = sp.symbols("k c b omega")
+    truth = {x: y, y: -k * x - c * y - b * x**3 + u, u: v, v: -w**2 * u}
+    values = {k: p["k"], c: p["c"], b: p["b"], w: p["omega"]}
+    return Draw("driven_oscillator", p, t, noisy[:, :2], clean[:, :2], ("x", "y"),
+                clean[:, 2:], {"rhs": truth, "hidden": [u, v], "values": values},
+                (("y", "1"), "rate"), with_observed=True)
+
+
+def _epidemic(rng, noise, seed, sampling=None):
+    """One SIR epidemic wave with only the infected fraction observed: Idot = h I with
+    h = beta S - gamma, whose law is closed: hdot = -beta I (h + gamma)."""
+    p = {"gamma": rng.uniform(0.1, 0.25), "r0": rng.uniform(1.8, 4.0),
+         "infected": rng.uniform(0.001, 0.01)}
+    p["beta"] = p["r0"] * p["gamma"]
+    t_end = 12.0 / (p["gamma"] * (p["r0"] - 1.0) ** 0.5)
+    t = _grid(sampling, t_end)
+
+    def rhs(s):
+        sus, inf = s
+        return [-p["beta"] * sus * inf, p["beta"] * sus * inf - p["gamma"] * inf]
+
+    clean, noisy = _simulated(rhs, (1.0 - p["infected"], p["infected"]), t, noise, seed)
+    sus, inf = sp.Symbol("S", real=True), sp.Symbol("I", real=True)
+    b, g = sp.symbols("beta gamma")
+    truth = {sus: -b * sus * inf, inf: b * sus * inf - g * inf}
+    values = {b: p["beta"], g: p["gamma"]}
+    return Draw("epidemic", p, t, noisy[:, 1:], clean[:, 1:], ("I",), clean[:, :1],
+                {"rhs": truth, "hidden": [sus], "values": values}, (("I", "I"),))
+
+
 FAMILIES = {
     f.name: f for f in [
         Family("lotka_volterra", "prey-only Lotka-Volterra (predator hidden)",
@@ -189,6 +276,13 @@ FAMILIES = {
                lambda: ps.PolynomialLibrary(degree=2), _lorenz_z),
         Family("modulated", "oscillator with a hidden growth rate z entering both "
                "equations", lambda: ps.PolynomialLibrary(degree=2), _modulated),
+        Family("lorenz_x", "Lorenz, x observed: y and z hidden (a hidden state inside "
+               "another's equation)", lambda: ps.PolynomialLibrary(degree=2), _lorenz_x),
+        Family("driven_oscillator", "damped Duffing oscillator pushed by a hidden "
+               "periodic drive (drive and its rate hidden)",
+               lambda: ps.PolynomialLibrary(degree=3), _driven),
+        Family("epidemic", "one SIR wave, only the infected observed (susceptibles "
+               "hidden, visited once)", lambda: ps.PolynomialLibrary(degree=2), _epidemic),
     ]
 }
 

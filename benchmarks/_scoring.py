@@ -10,6 +10,8 @@ and missing terms, and the relative error of every true coefficient.
 
 from __future__ import annotations
 
+from itertools import combinations
+
 import numpy as np
 import sympy as sp
 
@@ -44,38 +46,71 @@ def truth_in_variables(draw, defs, hidden_names):
     (sympy, numeric coefficients), or None when the definitions do not map onto the
     true hidden variables (wrong structure)."""
     rhs, hidden = draw.truth["rhs"], draw.truth["hidden"]
-    obs = {n: sp.Symbol(n, real=True) for n in draw.observed_names}
-    obs_syms = list(obs.values())
-    phis = []
-    for d in defs:
-        if d[0] == "coef":
-            _, state, feature = d
-            if state not in obs:
-                return None
-            poly = sp.Poly(sp.expand(rhs[obs[state]]), *obs_syms)
-            mono = sp.Poly(_feature(feature, obs), *obs_syms).monoms()[0]
-            phi = poly.as_dict().get(mono, sp.Integer(0))
-        else:
-            if d[1] >= len(phis):
-                return None
-            base = phis[d[1]]
-            phi = sum(sp.diff(base, z) * rhs[z] for z in hidden)
-        phis.append(sp.expand(phi))
-    if len(phis) != len(hidden):
+    obs_syms = [sp.Symbol(n, real=True) for n in draw.observed_names]
+    phis = hidden_definitions(draw, defs, hidden_names)
+    if phis is None or len(phis) != len(hidden):
         return None
     us = [sp.Symbol(n, real=True) for n in hidden_names]
     sol = sp.solve([u - phi for u, phi in zip(us, phis, strict=True)], hidden, dict=True)
     if len(sol) != 1 or any(z not in sol[0] for z in hidden):
         return None
     sol = sol[0]
-    out = {}
-    for name, sym in obs.items():
-        out[name] = rhs[sym].subs(sol)
+    out = {n: rhs[x].subs(sol) for n, x in zip(draw.observed_names, obs_syms, strict=True)}
     for name, phi in zip(hidden_names, phis, strict=True):
-        rate = sum(sp.diff(phi, z) * rhs[z] for z in hidden) + sum(
-            sp.diff(phi, x) * rhs[x] for x in obs_syms)
-        out[name] = rate.subs(sol)
+        out[name] = _rate(phi, rhs, hidden + obs_syms).subs(sol)
     return out
+
+
+def hidden_definitions(draw, defs, hidden_names):
+    """Each discovered hidden state as a function of the true variables (sympy), or None.
+    A hidden state may be a coefficient of an earlier hidden state's equation (Lorenz
+    from x: h1 is x's coefficient in dh0/dt): that equation is written in the observed
+    states and the earlier hidden states first, the remaining true variables staying in
+    the coefficients."""
+    rhs, hidden = draw.truth["rhs"], draw.truth["hidden"]
+    obs = {n: sp.Symbol(n, real=True) for n in draw.observed_names}
+    obs_syms = list(obs.values())
+    us = [sp.Symbol(n, real=True) for n in hidden_names]
+    phis = []
+    for d in defs:
+        if d[0] == "rate":
+            if d[1] >= len(phis):
+                return None
+            phis.append(sp.expand(_rate(phis[d[1]], rhs, hidden)))
+            continue
+        _, state, feature = d
+        if state in obs:
+            poly = sp.Poly(sp.expand(rhs[obs[state]]), *obs_syms)
+            mono = sp.Poly(_feature(feature, obs), *obs_syms).monoms()[0]
+        elif state in hidden_names[:len(phis)]:
+            known = _partial_solution(us[:len(phis)], phis, hidden)
+            if known is None:
+                return None
+            rate = _rate(phis[hidden_names.index(state)], rhs, hidden + obs_syms)
+            variables = obs_syms + us[:len(phis)]
+            poly = sp.Poly(sp.expand(rate.subs(known)), *variables)
+            names = {**obs, **dict(zip(hidden_names[:len(phis)], us, strict=False))}
+            mono = sp.Poly(_feature(feature, names), *variables).monoms()[0]
+        else:
+            return None
+        phis.append(sp.expand(poly.as_dict().get(mono, sp.Integer(0))))
+    return phis
+
+
+def _rate(phi, rhs, variables):
+    """d phi/dt along the true system."""
+    return sum(sp.diff(phi, v) * rhs[v] for v in variables)
+
+
+def _partial_solution(us, phis, hidden):
+    """Solve ``us = phis`` for as many true hidden variables as there are equations (the
+    first subset with one solution), or None."""
+    eqs = [u - phi for u, phi in zip(us, phis, strict=True)]
+    for subset in combinations(hidden, len(eqs)):
+        sol = sp.solve(eqs, list(subset), dict=True)
+        if len(sol) == 1 and all(z in sol[0] for z in subset):
+            return sol[0]
+    return None
 
 
 def _monomials(expr, symbols, values=None):
@@ -108,9 +143,11 @@ def compare(found, truth, names, symbols, values):
     return report
 
 
-def r2_hidden(hidden, truth):
-    """R^2 of every true hidden variable from the discovered ones (best affine map); min."""
-    design = np.column_stack([hidden, np.ones(len(hidden))])
+def r2_hidden(hidden, truth, observed=None):
+    """R^2 of every true hidden variable from the discovered ones (best affine map, with
+    the observed states in it when given); min."""
+    extra = [] if observed is None else [observed]
+    design = np.column_stack([hidden, *extra, np.ones(len(hidden))])
     coef, *_ = np.linalg.lstsq(design, truth, rcond=None)
     resid = truth - design @ coef
     r2 = 1 - np.sum(resid**2, axis=0) / np.sum((truth - truth.mean(axis=0)) ** 2, axis=0)
@@ -120,7 +157,8 @@ def r2_hidden(hidden, truth):
 def score(result, draw):
     """Metrics of one discover_hidden result against its draw."""
     out = score_structure(result, draw)
-    out["r2"] = r2_hidden(np.asarray(result.hidden), draw.hidden_true)
+    out["r2"] = r2_hidden(np.asarray(result.hidden), draw.hidden_true,
+                          draw.observed if draw.with_observed else None)
     return out
 
 
@@ -137,8 +175,13 @@ def score_structure(result, draw):
                    observed_error=np.inf)
         return out
     symbols = [sp.Symbol(n, real=True) for n in list(draw.observed_names) + hidden_names]
-    rep = compare(result.rhs, truth, list(draw.observed_names) + hidden_names, symbols,
-                  draw.truth["values"])
+    try:
+        rep = compare(result.rhs, truth, list(draw.observed_names) + hidden_names, symbols,
+                      draw.truth["values"])
+    except sp.PolynomialError:  # the truth is no polynomial in these variables (1/x)
+        out.update(exact=False, extra=np.nan, missing=np.nan, error=np.inf,
+                   observed_error=np.inf)
+        return out
     extra = sum(r[0] for r in rep.values())
     missing = sum(r[1] for r in rep.values())
     out.update(exact=extra == 0 and missing == 0, extra=extra, missing=missing,
@@ -168,18 +211,9 @@ def natural_series(draw):
     """The true hidden series in the natural variables (the coefficients and rates that
     latentsindy should report), noise-free."""
     hidden_names = [f"h{k}" for k in range(len(draw.natural))]
-    defs = _natural(draw)
-    rhs, hidden = draw.truth["rhs"], draw.truth["hidden"]
+    phis = hidden_definitions(draw, _natural(draw), hidden_names)
+    hidden = draw.truth["hidden"]
     obs_syms = [sp.Symbol(n, real=True) for n in draw.observed_names]
-    phis = []
-    for d in defs:
-        if d[0] == "coef":
-            obs = dict(zip(draw.observed_names, obs_syms, strict=True))
-            poly = sp.Poly(sp.expand(rhs[obs[d[1]]]), *obs_syms)
-            mono = sp.Poly(_feature(d[2], obs), *obs_syms).monoms()[0]
-            phis.append(poly.as_dict()[mono])
-        else:
-            phis.append(sum(sp.diff(phis[d[1]], z) * rhs[z] for z in hidden))
     values = draw.truth["values"]
     args = hidden + obs_syms
     data = np.column_stack([draw.hidden_true, draw.observed_clean])

@@ -93,7 +93,8 @@ def _discover(args) -> int:
     result = discover_hidden(x, library, t=t, feature_names=observed,
                              hidden_names=hidden_names, closure_library=closure,
                              generator=args.generator, refine=not args.no_refine,
-                             gaps=args.gaps, seed=args.seed, verbose=not args.quiet)
+                             gaps=args.gaps, max_hidden=args.max_hidden, seed=args.seed,
+                             verbose=not args.quiet)
     print(result.summary())
     if args.out:
         result.save(args.out)
@@ -117,7 +118,7 @@ def _discover_batch(args, files, observed, library, closure, hidden_names) -> in
                          backend=args.backend, feature_names=observed,
                          hidden_names=hidden_names, closure_library=closure,
                          generator=args.generator, refine=not args.no_refine,
-                         gaps=args.gaps, seeds=[args.seed])
+                         gaps=args.gaps, max_hidden=args.max_hidden, seeds=[args.seed])
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -197,6 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--gaps", choices=("split", "raise"), default="split",
                    help="missing values (empty fields, nan) in observed columns and long "
                         "time steps split a recording into segments (default) or are refused")
+    d.add_argument("--max-hidden", type=int, default=3,
+                   help="at most this many hidden states in any structure (default 3)")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--out", help="write the result here (.npz; read with latentsindy show); "
                                "for a folder or glob: a folder of results")

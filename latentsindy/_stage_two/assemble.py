@@ -9,6 +9,7 @@ import sympy as sp
 
 from .first_integral import integrated_system
 from .judge import build, exchangeable_terms, weakly_supported_terms
+from .nested import monomial_name
 from .result import Alternative, HiddenDiscovery, HiddenState, Refinement, Term
 
 # A closed system reproduces held-out data when its score (held-out misfit in noise
@@ -43,9 +44,10 @@ def hidden_names(system, n_observed, given, observed):
     return names
 
 
-def describe(system, ctx, names, pivots):
+def describe(system, ctx, names, pivots, nested=()):
     """HiddenState of every hidden state of ``system`` (in user names) and the renaming
-    map of symbols."""
+    map of symbols. ``nested``: (structure, carrier) of each hidden state defined as a
+    coefficient in the previous hidden state's equation (:mod:`.nested`)."""
     n_obs = system.n_observed
     internal = system.state_names[n_obs:]
     rename = {sp.Symbol(a, real=True): sp.Symbol(b, real=True)
@@ -55,6 +57,13 @@ def describe(system, ctx, names, pivots):
     for a, name in enumerate(internal):
         if name.startswith("g"):
             states.append(HiddenState(names[a], (), names[0]))
+            continue
+        if a >= len(pivots):  # inside the previous hidden state's equation
+            _, carrier = nested[a - len(pivots)]
+            symbols = system.symbols
+            carrier = monomial_name(carrier.xreplace(rename), [s.xreplace(rename)
+                                                              for s in symbols])
+            states.append(HiddenState(names[a], ((names[a - 1], carrier),)))
             continue
         h = sp.Symbol(name, real=True)
         terms = []
@@ -86,9 +95,9 @@ def terms_of(system, rename, names_map, stderr=None):
 
 
 def alternative(system, ctx, pivots, description, score, score_se, size, status, given,
-                observed):
+                observed, nested=()):
     names = hidden_names(system, system.n_observed, given, observed)
-    states, rename = describe(system, ctx, names, pivots)
+    states, rename = describe(system, ctx, names, pivots, nested)
     names_map = dict(zip(system.state_names[system.n_observed:], names, strict=True))
     rhs = {}
     for t in terms_of(system, rename, names_map):
@@ -98,7 +107,7 @@ def alternative(system, ctx, pivots, description, score, score_se, size, status,
 
 
 def _describe_origin(p):
-    return f"{p.origin} ({p.structure.n_hidden + p.order - 1} hidden)"
+    return f"{p.origin} ({p.n_states} hidden)"
 
 
 def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
@@ -108,7 +117,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
     observed = list(ctx.observed_names)
     names = hidden_names(system, system.n_observed, given_names, observed)
     pivots = best.proposal.structure.pivots
-    states, rename = describe(system, ctx, names, pivots)
+    states, rename = describe(system, ctx, names, pivots, best.proposal.nested)
     names_map = dict(zip(system.state_names[system.n_observed:], names, strict=True))
     terms = terms_of(system, rename, names_map, fit.standard_errors())
     trajectories = problem.trajectories(fit)
@@ -122,7 +131,8 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
     def alt(v):
         return alternative(v.system, ctx, v.proposal.structure.pivots,
                            _describe_origin(v.proposal), v.cv, v.cv_se, v.size,
-                           "scored" if v.scored else v.history[0], given_names, observed)
+                           "scored" if v.scored else v.history[0], given_names, observed,
+                           v.proposal.nested)
 
     alternatives = tuple(alt(v) for v in ordered[1:])
     unsure = tuple(alt(v) for v in uncertain)

@@ -31,13 +31,17 @@ VARIATION_SIGMAS = 3.0  # variation must exceed this many posterior std ...
 VARIATION_RELATIVE = 0.05  # ... and this fraction of the coefficient's mean size
 THRESHOLD = 0.05  # smallest share of an equation's RMS rate a constant term may explain
 STAGE_ONE_SHARE = 0.5  # stage one also runs on segments at least this share of the longest
+# Nested hidden states (:mod:`.nested`) are off until the discovery table is re-measured
+# with them (issue 20): on Lorenz from x alone they find the right structure's hidden
+# states but refinement has not yet reached the law (see the README's status).
+NESTED = False
 
 
 def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_terms=None,
                     hidden_names=None, closure_library=None, generator="timevae",
                     generator_options=None, training=None, differentiation_method=None,
-                    support=None, n_samples=64, refine=True, gaps="split", seed=0,
-                    verbose=True) -> HiddenDiscovery:
+                    support=None, n_samples=64, refine=True, gaps="split", max_hidden=3,
+                    seed=0, verbose=True) -> HiddenDiscovery:
     """Infer hidden variables and a closed, autonomous ODE from partial observations.
 
     Stage one fits time-varying coefficients Xi(t) (:class:`DynamicSINDy`); a
@@ -92,6 +96,9 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         Refine every candidate system by integration and judge on held-out data
         (default). Off: candidates are ranked by their closure's held-out error and
         the coefficients come from the closure's integral fit.
+    max_hidden : int
+        At most this many hidden states in any structure judged (default 3): from
+        shared variation, and a hidden state's rate (needs 2).
     gaps : {"split", "raise"}
         ``"split"`` (default): rows with missing values are dropped and a recording is
         split into segments at gaps (a time step 20 times the spacing around it); the
@@ -119,6 +126,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         raise TypeError("closure_library must be a pysindy feature library; got "
                         f"{type(closure_library).__name__}.")
     val.check_positive(n_samples, "n_samples", integer=True)
+    val.check_positive(max_hidden, "max_hidden", integer=True)
     if not isinstance(refine, bool):
         raise TypeError(f"refine must be True or False; got {refine!r}.")
     _, features = fit_library(check_library(library), trajs[:1], names)
@@ -155,12 +163,14 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     series = np.stack([np.concatenate([c.term(s, f) for c in coefs]) for s, f in pairs],
                       axis=1)
     if hidden_terms is None:
-        proposals = propose(ctx, first.support, index, series, fuller=refine)
+        proposals = propose(ctx, first.support, index, series, fuller=refine,
+                            max_rank=max_hidden)
     else:
         proposals = [evaluate(_named_structure(first.support, index), ctx, "hidden_terms")]
     if refine:
         with single_thread():
-            ordered, uncertain = judge_all(proposals, ctx, RefineOptions())
+            ordered, uncertain = judge_all(proposals, ctx, RefineOptions(), max_hidden,
+                                           NESTED)
             result = from_verdicts(ordered, uncertain, ctx, first, hidden_names)
     else:
         stds = {ij: first.std[:, ij[0], ij[1]] for ij in index}

@@ -64,6 +64,15 @@ class Proposal:
     hidden: list  # (T, n_hidden + order - 1) per trajectory: hidden states (and rate)
     order: int
     origin: str
+    # a hidden state inside the hidden equation (:mod:`.nested`): ((its proposal on the
+    # augmented data, its carrier as a sympy monomial),) and that augmented context
+    nested: tuple = ()
+    nested_context: object = None
+
+    @property
+    def n_states(self) -> int:
+        """Hidden states of the closed system."""
+        return self.structure.n_hidden + self.order - 1 + len(self.nested)
 
     @property
     def score(self) -> float:
@@ -104,7 +113,7 @@ def _derivative(series, t, edge=False):
     return rate
 
 
-def propose(ctx: Context, support, varying_pairs, series, fuller=True):
+def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=MAX_RANK):
     """Ranked proposals (best first) for the judge.
 
     Parameters
@@ -118,6 +127,8 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True):
         (:func:`fuller_closure`): a start for the integrated judge, whose term selection
         prunes. Without refinement (proposals ranked by closure error alone) they would
         win by construction, so leave them out there.
+    max_rank : int
+        At most this many hidden states from shared variation.
     """
     n_obs, n_feat = support.shape
     proposals = {}
@@ -129,7 +140,7 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True):
 
     first = []  # always judged: stage one's own structure, and per equation the carrier
     # whose series fits the data best and the one whose series closes best
-    for structure in _shared(support, varying_pairs, series):
+    for structure in _shared(support, varying_pairs, series, max_rank):
         p = evaluate(structure, ctx, "stage one")
         first.append(p) if not first else None
         add(p)
@@ -174,6 +185,8 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True):
             first.append(q)
     if len(best_carrier) > 1:  # variation in several equations: one hidden or several
         for structure in _across_equations(best_carrier, support):
+            if structure.n_hidden > max_rank:
+                continue
             p = evaluate(structure, ctx, "shared")
             add(p)
             add(improve_constants(p, ctx))
@@ -272,7 +285,7 @@ def improve_constants(p: Proposal, ctx: Context, max_moves: int = 3) -> Proposal
     return p
 
 
-def _shared(support, pairs, series):
+def _shared(support, pairs, series, max_rank=MAX_RANK):
     """Stage one's varying terms with their variation factored at ranks 1..MAX_RANK:
     pivots chosen greedily (the most significant term, then the one least explained by
     the pivots so far), other terms' loadings by least squares on the pivots."""
@@ -283,7 +296,7 @@ def _shared(support, pairs, series):
     z = (z - z.mean(axis=0)) / np.maximum(z.std(axis=0), 1e-300)
     out = []
     pivots = [0]
-    for rank in range(1, min(len(pairs), MAX_RANK) + 1):
+    for rank in range(1, min(len(pairs), max_rank) + 1):
         if rank > 1:
             basis = np.column_stack([np.ones(len(z)), z[:, pivots]])
             resid = z - basis @ np.linalg.lstsq(basis, z, rcond=None)[0]

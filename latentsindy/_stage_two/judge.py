@@ -22,11 +22,15 @@ from .field import ParametricSystem
 from .first_integral import integrated_proposal, integrated_system
 from .gauge import shifted_guesses, shifted_proposal, shifted_system
 from .hypotheses import Context, Proposal, close
+from .nested import nested_proposals, nested_system
 from .refine import Fit, Problem, RefineOptions, cross_validate
 from .shooting import BlowUp
 from .terms import ambiguities, select_terms, weak_terms
 
 RATE_TRIGGER = 1.5  # best misfit (noise variances) above which rate states are tried
+# ... and above which nested hidden states are tried (after the rate states)
+NESTED_TRIGGER = RATE_TRIGGER
+NESTED_PARENTS = 2  # single-hidden-state trials (best misfit first) nested states start from
 # Held-out scores below this (noise variances) all count as perfect: on noise-free data
 # the noise level is floored (0.1% of each state's std), scores are tiny and their
 # differences are the integrator's, not the data's; the smallest such system wins.
@@ -125,7 +129,7 @@ class _Trial:
 
 
 def _first_fit(p: Proposal, ctx: Context, options) -> _Trial | None:
-    system, candidates, guesses = build(p, ctx)
+    system, candidates, guesses = nested_system(p, ctx, build) if p.nested else build(p, ctx)
     problem = Problem(system, ctx.times, ctx.observed, guesses, options)
     try:
         initial = problem.equations(system, problem.initial_starts,
@@ -159,22 +163,34 @@ def _unscored(trial: _Trial, why: str) -> Verdict:
                    (why,), trial.initial_misfit)
 
 
-def judge_all(proposals, ctx: Context, options: RefineOptions | None = None):
+def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
+              max_hidden: int = 3, nested: bool = False):
     """Judge the proposals: refine each; when none reproduces the data to about its
     noise level, also refine the best single-hidden-state proposals with the hidden
     state's rate as a second state; then select terms stepwise and score on held-out
     data those whose in-sample misfit is within twice the best one's (the others
-    cannot come close on held-out data). Returns ``rank``'s result."""
+    cannot come close on held-out data). With ``nested``, when still none does, also
+    the best single-hidden-state proposals with a hidden state inside the hidden
+    equation (:mod:`.nested`). Returns ``rank``'s result."""
     options = options or RefineOptions()
     trials = [t for t in (_first_fit(p, ctx, options) for p in proposals) if t is not None]
     best = min((t.fit.residual_variance for t in trials), default=np.inf)
-    if best > RATE_TRIGGER:
+    if best > RATE_TRIGGER and max_hidden >= 2:
         singles = [p for p in proposals if p.structure.n_hidden == 1 and p.order == 1]
         for p in singles[:2]:
             t = _first_fit(close(p.structure, p.fit, ctx, p.origin + ", with its rate", 2),
                            ctx, options)
             if t is not None:
                 trials.append(t)
+        best = min((t.fit.residual_variance for t in trials), default=np.inf)
+    if nested and best > NESTED_TRIGGER and max_hidden >= 2:
+        parents = sorted((t for t in trials if t.proposal.n_states == 1),
+                         key=lambda t: t.fit.residual_variance)[:NESTED_PARENTS]
+        for parent in parents:
+            for p in nested_proposals(parent.proposal, ctx):
+                t = _first_fit(p, ctx, options)
+                if t is not None:
+                    trials.append(t)
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
     verdicts = []
     for t in trials:
@@ -183,7 +199,7 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None):
         else:
             verdicts.append(_unscored(t, "rejected"))
     ordered, uncertain = rank(verdicts)
-    if ordered and ordered[0].scored:
+    if ordered and ordered[0].scored and not ordered[0].proposal.nested:
         # the winner restated: one hidden state where its rate law has a first integral,
         # or shifted to absorb its observed terms
         restated = _integrated(ordered[0], options) or _shifted(ordered[0], ctx, options)
@@ -299,7 +315,8 @@ def _extends(v, chosen):
     at least the same order): then ``v`` is the chosen system with more in it, and
     parsimony, not uncertainty, decides between them."""
     a, b = v.proposal, chosen.proposal
-    return set(b.structure.pivots) <= set(a.structure.pivots) and a.order >= b.order
+    return (set(b.structure.pivots) <= set(a.structure.pivots) and a.order >= b.order
+            and len(a.nested) >= len(b.nested))
 
 
 def same_structure(a: Verdict, b: Verdict) -> bool:

@@ -182,6 +182,14 @@ def test_bad_refine_flag():
         discover_hidden(data.x[:, :1], t=data.t, refine="yes", verbose=False)
 
 
+def test_max_hidden_must_be_a_positive_integer():
+    data = systems.lotka_volterra(n_times=300)
+    with pytest.raises(ValueError, match="max_hidden must be > 0; got 0"):
+        discover_hidden(data.x[:, :1], t=data.t, max_hidden=0, verbose=False)
+    with pytest.raises(TypeError, match="max_hidden must be an integer; got 1.5"):
+        discover_hidden(data.x[:, :1], t=data.t, max_hidden=1.5, verbose=False)
+
+
 def test_no_hidden_variable_is_an_error():
     data = systems.harmonic_oscillator(A=-2.0, B=1.0, n_times=600, t_end=20)
     with pytest.raises(ValueError, match="No coefficient varies in time"):

@@ -208,7 +208,7 @@ def test_blow_up_is_raised_not_hung():
 def _verdict(cv, se, size, key, pivot=(0, 0)):
     system = SimpleNamespace(state_names=("x", "h"), features=(key,),
                              free=np.ones((1, 1), bool), coef=np.ones((1, 1)))
-    proposal = SimpleNamespace(structure=SimpleNamespace(pivots=(pivot,)), order=1)
+    proposal = SimpleNamespace(structure=SimpleNamespace(pivots=(pivot,)), order=1, nested=())
     return SimpleNamespace(cv=cv, cv_se=se, size=size, system=system, scored=True,
                            proposal=proposal)
 

@@ -1,0 +1,177 @@
+"""Nested discovery: a hidden state inside another hidden state's equation.
+
+A hidden state found from the observed equations can have a law that no closure in the
+observed states and itself reproduces, because it depends on a further variable that
+no observed equation shows. Lorenz seen through x alone: ``xdot = h0 - sigma x`` with
+``h0 = sigma y``, and ``dh0/dt = -h0 + x h1`` where ``h1 = sigma (rho - z)`` is the
+coefficient of x in h0's equation, varying in time. That is the first step of
+discovery again, applied to the augmented system: the observed states together with
+the hidden state's estimated series are treated as measured, one term of the hidden
+state's equation at a time carries a smooth time-varying coefficient (the structured
+smoother, :mod:`.smoother`), and that coefficient's series is closed (:mod:`.closure`).
+The judge then refines the whole system (observed plus both hidden states) against the
+observed data alone and scores it on held-out segments, like every other proposal:
+nothing here is accepted on the augmented data's word.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import sympy as sp
+
+from .._core.library import feature_expressions, state_symbols
+from .field import ParametricSystem
+from .hypotheses import Context, Proposal, _usable, close
+from .smoother import fit_hidden, prune_constants, single_term
+
+PARENT = "q0"  # the parent hidden state's name inside the augmented system
+KEEP = 2  # nested proposals per parent passed on to the judge
+
+
+def nested_proposals(parent: Proposal, ctx: Context, keep: int = KEEP) -> list[Proposal]:
+    """Proposals with one more hidden state: a time-varying coefficient of one term of
+    ``parent``'s (single, first-order) hidden equation, best closures first."""
+    if parent.structure.n_hidden != 1 or parent.order != 1 or parent.nested:
+        return []
+    aug = augmented_context(parent, ctx)
+    row = len(ctx.observed_names)
+    support = _augmented_support(parent, ctx, aug)
+    columns = _closure_columns(parent, ctx, aug)
+    support[row, columns] = True
+    carriers = []
+    for k in columns:
+        # every closure term as a constant beside the carrier, then those that explain
+        # less than the threshold of the equation's rate pruned (STLSQ with the
+        # smoother inside): the parent's own closure is no guide, the data refused it
+        structure = single_term(row + 1, len(aug.feature_exprs), row, k, support)
+        try:
+            fit = fit_hidden(structure, aug.thetas, aug.observed, aug.times, aug.sigma,
+                             aug.spacing)
+            fit = prune_constants(fit, aug.thetas, aug.observed, aug.times, aug.sigma,
+                                  aug.spacing, aug.threshold, aug.free_rows)
+            trial = close(fit.structure, fit, aug, "nested")
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+        if np.isfinite(trial.score) and np.isfinite(trial.fit.misfit):
+            carriers.append(trial)
+    return [_as_proposal(parent, p, ctx, aug) for p in _usable(carriers)[:keep]]
+
+
+def augmented_context(parent: Proposal, ctx: Context) -> Context:
+    """The data with the parent's hidden series as one more measured state (named
+    ``q0``); its library holds the observed library, the parent's carrier times
+    ``q0``, and the closure library in (observed, ``q0``)."""
+    names = list(ctx.observed_names) + [PARENT]
+    symbols = state_symbols(names)
+    q0 = symbols[-1]
+    (_, k), = parent.structure.pivots
+    states = [np.hstack([x, h]) for x, h in zip(ctx.smoothed, parent.hidden, strict=True)]
+    measured = [np.hstack([x, h]) for x, h in zip(ctx.observed, parent.hidden, strict=True)]
+    closure = feature_expressions(parent.closure.library, list(parent.closure.feature_names),
+                                  [PARENT] + list(ctx.observed_names))
+    exprs = []
+    for e in list(ctx.feature_exprs) + [q0 * ctx.feature_exprs[k]] + list(closure):
+        e = sp.expand(sp.sympify(e))
+        if e not in exprs:
+            exprs.append(e)
+    thetas = [_evaluate(exprs, symbols, s) for s in states]
+    sigma = np.append(ctx.sigma, _hidden_noise(parent, ctx))
+    return replace(ctx, observed_names=tuple(names),
+                   feature_names=tuple(str(e) for e in exprs), feature_exprs=tuple(exprs),
+                   observed=measured, smoothed=states, thetas=thetas, sigma=sigma,
+                   free_rows=np.append(ctx.free_rows, True))
+
+
+def _hidden_noise(parent, ctx):
+    """Noise of the parent's hidden series as a measurement: the noise of a rate from a
+    local polynomial over the differentiator's window (``sigma sqrt(12 / w^3) / dt``)
+    in the carrier's equation, over the carrier's RMS size (the hidden state is that
+    rate divided by its carrier)."""
+    (i, k), = parent.structure.pivots
+    w = max(ctx.span, 3)
+    dt = np.mean([(t[-1] - t[0]) / max(len(t) - 1, 1) for t in ctx.times])
+    theta = np.sqrt(np.mean(np.concatenate([th[:, k] for th in ctx.thetas]) ** 2))
+    return ctx.sigma[i] * np.sqrt(12.0 / w**3) / dt / max(theta, 1e-300)
+
+
+def _closure_columns(parent, ctx, aug):
+    """Columns of the augmented library that the closure library holds (the candidate
+    terms of the parent's equation)."""
+    closure = feature_expressions(parent.closure.library, list(parent.closure.feature_names),
+                                  [PARENT] + list(ctx.observed_names))
+    return [aug.feature_exprs.index(sp.expand(e)) for e in closure]
+
+
+def _evaluate(exprs, symbols, states):
+    f = sp.lambdify(symbols, list(exprs), modules="numpy")
+    cols = f(*states.T)
+    return np.column_stack([np.broadcast_to(np.asarray(c, float), (len(states),))
+                            for c in cols])
+
+
+def _augmented_support(parent, ctx, aug):
+    """The parent's observed equations (its carrier now a term in ``q0``) and its
+    closure's terms in the augmented library."""
+    n_obs = len(ctx.observed_names)
+    index = {e: j for j, e in enumerate(aug.feature_exprs)}
+    support = np.zeros((n_obs + 1, len(aug.feature_exprs)), dtype=bool)
+    st = parent.structure
+    for i in range(n_obs):
+        for k in np.flatnonzero(st.support[i]):
+            q0 = state_symbols([PARENT])[0] if (i, k) in st.pivots else 1
+            support[i, index[sp.expand(q0 * sp.sympify(ctx.feature_exprs[k]))]] = True
+    closure = feature_expressions(parent.closure.library, list(parent.closure.feature_names),
+                                  [PARENT] + list(ctx.observed_names))
+    for value, e in zip(parent.closure.coef[0], closure, strict=True):
+        if value != 0:
+            support[n_obs, index[sp.expand(e)]] = True
+    return support
+
+
+def _as_proposal(parent, p, ctx, aug):
+    """The nested proposal ``p`` (on the augmented data) as a proposal on the observed
+    data: the parent's structure, both hidden series, the new closure, and the new
+    state's definition."""
+    (_, k), = p.structure.pivots
+    q0, h0 = state_symbols([PARENT, "h0"])
+    carrier = sp.sympify(aug.feature_exprs[k]).xreplace({q0: h0})
+    feature = monomial_name(carrier, state_symbols(list(ctx.observed_names) + ["h0"]))
+    hidden = [np.hstack([h, g]) for h, g in zip(parent.hidden, p.hidden, strict=True)]
+    return replace(parent, hidden=hidden, closure=p.closure,
+                   origin=f"{parent.origin}, nested ({feature} in the hidden equation)",
+                   nested=((p, carrier),), nested_context=aug)
+
+
+def monomial_name(expr, symbols):
+    """A monomial's name as the libraries write it (``x h0^2``; ``1``), its variables in
+    the order of ``symbols``."""
+    powers = sp.Poly(expr, *symbols).monoms()[0]
+    parts = [s.name if e == 1 else f"{s.name}^{e}"
+             for s, e in zip(symbols, powers, strict=True) if e]
+    return " ".join(parts) or "1"
+
+
+def nested_system(p: Proposal, ctx: Context, build):
+    """The closed system of a nested proposal on the observed data: the augmented
+    system's (observed, ``q0``, new state) renamed to (observed, ``h0``, ``h1``) with
+    ``h0`` hidden again, its definition (the carrier's coefficient, 1) fixed; the terms
+    stepwise selection may add; the initial guesses."""
+    (inner, _), = p.nested
+    aug = p.nested_context
+    system, candidates, guesses = build(inner, aug)
+    n_obs = len(ctx.observed_names)
+    old = state_symbols(list(system.state_names))
+    new_names = list(ctx.observed_names) + ["h0", "h1"]
+    rename = dict(zip(old, state_symbols(new_names), strict=True))
+    features = tuple(f.xreplace(rename) for f in system.features)
+    coef, free = system.coef.copy(), system.free.copy()
+    (i, k), = p.structure.pivots
+    h0 = state_symbols(["h0"])[0]
+    definition = features.index(sp.expand(h0 * sp.sympify(ctx.feature_exprs[k])))
+    coef[i, definition], free[i, definition] = 1.0, False
+    candidates = candidates & ~free
+    candidates[i, definition] = False
+    out = ParametricSystem(tuple(new_names), n_obs, features, coef, free)
+    return out, candidates, guesses
