@@ -103,8 +103,8 @@ def _posterior(fit, basis, n_times, n_features):
     series, spread = fit.series(*basis)
     for a, k in enumerate(fit.varying):
         m[:, k], s[:, k] = series[:, a], spread[:, a]
-    for c, (j, value) in enumerate(zip(fit.constant, fit.constants, strict=True)):
-        m[:, j], s[:, j] = value, fit.constant_sd()[c]
+    for j, value, spread in zip(fit.constant, fit.constants, fit.constant_sd(), strict=True):
+        m[:, j], s[:, j] = value, spread
     return m, s
 
 

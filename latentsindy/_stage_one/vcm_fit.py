@@ -285,11 +285,12 @@ class EquationModel:
                                   edf=lambda: np.zeros(v))
             return fit
         log_ev, (u, proj, schur_inv, w_b, w_c, rough, s2) = solved
-        if adaptive:
-            log_ev += self._update(st, solved, weights)[1]
+        memo = {}
+        if adaptive:  # the bound's correction needs the covariance: keep it
+            memo["cov"] = self._covariance(st, solved)
+            log_ev += self._update(st, solved, weights, memo["cov"])[1]
         fit = EquationFit(log_ev, support, varying, constant, log_rough, w_b.reshape(m_knots, v),
                           w_c, schur_inv * s2, s2, adaptive)
-        memo = {}
 
         def covariance():  # per unit noise variance, computed once on demand
             if "cov" not in memo:

@@ -46,8 +46,8 @@ def hidden_names(system, n_observed, given, observed):
 
 def describe(system, ctx, names, pivots, nested=()):
     """HiddenState of every hidden state of ``system`` (in user names) and the renaming
-    map of symbols. ``nested``: (structure, carrier) of each hidden state defined as a
-    coefficient in the previous hidden state's equation (:mod:`.nested`)."""
+    map of symbols. ``nested``: :attr:`.hypotheses.Proposal.nested`, the hidden states
+    defined as a coefficient in the previous hidden state's equation."""
     n_obs = system.n_observed
     internal = system.state_names[n_obs:]
     rename = {sp.Symbol(a, real=True): sp.Symbol(b, real=True)
@@ -59,7 +59,7 @@ def describe(system, ctx, names, pivots, nested=()):
             states.append(HiddenState(names[a], (), names[0]))
             continue
         if a >= len(pivots):  # inside the previous hidden state's equation
-            _, carrier = nested[a - len(pivots)]
+            _, carrier, _ = nested[a - len(pivots)]
             symbols = system.symbols
             carrier = monomial_name(carrier.xreplace(rename), [s.xreplace(rename)
                                                               for s in symbols])

@@ -65,9 +65,8 @@ class Proposal:
     order: int
     origin: str
     # a hidden state inside the hidden equation (:mod:`.nested`): ((its proposal on the
-    # augmented data, its carrier as a sympy monomial),) and that augmented context
+    # augmented data, its carrier as a sympy monomial, the augmented context),)
     nested: tuple = ()
-    nested_context: object = None
 
     @property
     def n_states(self) -> int:

@@ -28,8 +28,6 @@ from .shooting import BlowUp
 from .terms import ambiguities, select_terms, weak_terms
 
 RATE_TRIGGER = 1.5  # best misfit (noise variances) above which rate states are tried
-# ... and above which nested hidden states are tried (after the rate states)
-NESTED_TRIGGER = RATE_TRIGGER
 NESTED_PARENTS = 2  # single-hidden-state trials (best misfit first) nested states start from
 # Held-out scores below this (noise variances) all count as perfect: on noise-free data
 # the noise level is floored (0.1% of each state's std), scores are tiny and their
@@ -183,7 +181,7 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
             if t is not None:
                 trials.append(t)
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
-    if nested and best > NESTED_TRIGGER and max_hidden >= 2:
+    if nested and best > RATE_TRIGGER and max_hidden >= 2:
         parents = sorted((t for t in trials if t.proposal.n_states == 1),
                          key=lambda t: t.fit.residual_variance)[:NESTED_PARENTS]
         for parent in parents:

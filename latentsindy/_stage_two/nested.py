@@ -22,6 +22,7 @@ import numpy as np
 import sympy as sp
 
 from .._core.library import feature_expressions, state_symbols
+from .._core.symbolic import VectorField
 from .field import ParametricSystem
 from .hypotheses import Context, Proposal, _usable, close
 from .smoother import fit_hidden, prune_constants, single_term
@@ -38,7 +39,7 @@ def nested_proposals(parent: Proposal, ctx: Context, keep: int = KEEP) -> list[P
     aug = augmented_context(parent, ctx)
     row = len(ctx.observed_names)
     support = _augmented_support(parent, ctx, aug)
-    columns = _closure_columns(parent, ctx, aug)
+    columns = [aug.feature_exprs.index(e) for e in _closure_exprs(parent, ctx)]
     support[row, columns] = True
     carriers = []
     for k in columns:
@@ -69,14 +70,13 @@ def augmented_context(parent: Proposal, ctx: Context) -> Context:
     (_, k), = parent.structure.pivots
     states = [np.hstack([x, h]) for x, h in zip(ctx.smoothed, parent.hidden, strict=True)]
     measured = [np.hstack([x, h]) for x, h in zip(ctx.observed, parent.hidden, strict=True)]
-    closure = feature_expressions(parent.closure.library, list(parent.closure.feature_names),
-                                  [PARENT] + list(ctx.observed_names))
     exprs = []
-    for e in list(ctx.feature_exprs) + [q0 * ctx.feature_exprs[k]] + list(closure):
+    for e in list(ctx.feature_exprs) + [q0 * ctx.feature_exprs[k]] + _closure_exprs(parent, ctx):
         e = sp.expand(sp.sympify(e))
         if e not in exprs:
             exprs.append(e)
-    thetas = [_evaluate(exprs, symbols, s) for s in states]
+    library = VectorField(symbols, exprs)
+    thetas = [library(0.0, s) for s in states]
     sigma = np.append(ctx.sigma, _hidden_noise(parent, ctx))
     return replace(ctx, observed_names=tuple(names),
                    feature_names=tuple(str(e) for e in exprs), feature_exprs=tuple(exprs),
@@ -96,24 +96,17 @@ def _hidden_noise(parent, ctx):
     return ctx.sigma[i] * np.sqrt(12.0 / w**3) / dt / max(theta, 1e-300)
 
 
-def _closure_columns(parent, ctx, aug):
-    """Columns of the augmented library that the closure library holds (the candidate
-    terms of the parent's equation)."""
-    closure = feature_expressions(parent.closure.library, list(parent.closure.feature_names),
-                                  [PARENT] + list(ctx.observed_names))
-    return [aug.feature_exprs.index(sp.expand(e)) for e in closure]
-
-
-def _evaluate(exprs, symbols, states):
-    f = sp.lambdify(symbols, list(exprs), modules="numpy")
-    cols = f(*states.T)
-    return np.column_stack([np.broadcast_to(np.asarray(c, float), (len(states),))
-                            for c in cols])
+def _closure_exprs(parent, ctx):
+    """The closure library's features in (observed, ``q0``): the candidate terms of the
+    parent's equation."""
+    return [sp.expand(e) for e in feature_expressions(
+        parent.closure.library, list(parent.closure.feature_names),
+        [PARENT] + list(ctx.observed_names))]
 
 
 def _augmented_support(parent, ctx, aug):
-    """The parent's observed equations (its carrier now a term in ``q0``) and its
-    closure's terms in the augmented library."""
+    """The parent's observed equations in the augmented library (its carrier now a term
+    in ``q0``), and an empty row for the parent's equation."""
     n_obs = len(ctx.observed_names)
     index = {e: j for j, e in enumerate(aug.feature_exprs)}
     support = np.zeros((n_obs + 1, len(aug.feature_exprs)), dtype=bool)
@@ -122,11 +115,6 @@ def _augmented_support(parent, ctx, aug):
         for k in np.flatnonzero(st.support[i]):
             q0 = state_symbols([PARENT])[0] if (i, k) in st.pivots else 1
             support[i, index[sp.expand(q0 * sp.sympify(ctx.feature_exprs[k]))]] = True
-    closure = feature_expressions(parent.closure.library, list(parent.closure.feature_names),
-                                  [PARENT] + list(ctx.observed_names))
-    for value, e in zip(parent.closure.coef[0], closure, strict=True):
-        if value != 0:
-            support[n_obs, index[sp.expand(e)]] = True
     return support
 
 
@@ -141,7 +129,7 @@ def _as_proposal(parent, p, ctx, aug):
     hidden = [np.hstack([h, g]) for h, g in zip(parent.hidden, p.hidden, strict=True)]
     return replace(parent, hidden=hidden, closure=p.closure,
                    origin=f"{parent.origin}, nested ({feature} in the hidden equation)",
-                   nested=((p, carrier),), nested_context=aug)
+                   nested=((p, carrier, aug),))
 
 
 def monomial_name(expr, symbols):
@@ -158,8 +146,7 @@ def nested_system(p: Proposal, ctx: Context, build):
     system's (observed, ``q0``, new state) renamed to (observed, ``h0``, ``h1``) with
     ``h0`` hidden again, its definition (the carrier's coefficient, 1) fixed; the terms
     stepwise selection may add; the initial guesses."""
-    (inner, _), = p.nested
-    aug = p.nested_context
+    (inner, _, aug), = p.nested
     system, candidates, guesses = build(inner, aug)
     n_obs = len(ctx.observed_names)
     old = state_symbols(list(system.state_names))
@@ -171,7 +158,6 @@ def nested_system(p: Proposal, ctx: Context, build):
     h0 = state_symbols(["h0"])[0]
     definition = features.index(sp.expand(h0 * sp.sympify(ctx.feature_exprs[k])))
     coef[i, definition], free[i, definition] = 1.0, False
-    candidates = candidates & ~free
     candidates[i, definition] = False
     out = ParametricSystem(tuple(new_names), n_obs, features, coef, free)
     return out, candidates, guesses
