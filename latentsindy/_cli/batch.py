@@ -1,23 +1,32 @@
 """Discovery over many recordings (or seeds) in parallel, collected in one table.
 
-Runs go through joblib: local processes by default; any joblib backend the user names
-(``"dask"`` or ``"ray"`` once their joblib integration is registered, see joblib's
-``parallel_config``) spreads them over a cluster. Each worker runs torch on one thread,
-so ``n_jobs`` workers use ``n_jobs`` cores. A run that fails is recorded with its error
-message; the others go on.
+Runs go through joblib's local processes by default (``n_jobs`` workers, or any joblib
+backend by name), or to a Dask cluster (``scheduler=``: a scheduler's address or a
+``distributed.Client``), where they are submitted as futures and collected as they
+finish. Each worker runs torch on one thread, so ``n_jobs`` workers use ``n_jobs``
+cores. A run that fails, or whose worker dies, is recorded with its error message; the
+others go on. With ``out=`` every run is written the moment it finishes (its result
+file and its row of ``runs.csv``), so a batch that is stopped keeps what it finished.
 """
 
 from __future__ import annotations
 
 import csv
+import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 from joblib import Parallel, delayed
 
+from .._core import validation as val
 from .._stage_two.discover import discover_hidden
+
+TABLE = "runs.csv"
+COLUMNS = ("name", "seed", "wall_s", "error", "hidden_states", "confident", "score",
+           "equations")
 
 
 @dataclass(frozen=True)
@@ -34,7 +43,8 @@ class Run:
     def row(self) -> dict:
         """The run as one table row."""
         r = self.result
-        row = {"name": self.name, "seed": self.seed, "wall_s": round(self.wall, 2),
+        row = {"name": self.name, "seed": self.seed,
+               "wall_s": "" if math.isnan(self.wall) else round(self.wall, 2),
                "error": self.error or ""}
         if r is None:
             return row | {"hidden_states": "", "confident": "", "score": "", "equations": ""}
@@ -45,7 +55,9 @@ class Run:
         }
 
 
-def _one(name, x, t, library, seed, options):
+def _one(name, x, t, library, seed, options) -> Run:
+    """One discovery on one torch thread (restored after: n_jobs=1 runs in-process)."""
+    threads = torch.get_num_threads()
     torch.set_num_threads(1)
     start = time.perf_counter()
     try:
@@ -54,10 +66,12 @@ def _one(name, x, t, library, seed, options):
     except Exception as err:  # noqa: BLE001 - a failed run is recorded, the batch goes on
         return Run(name, seed, None, f"{type(err).__name__}: {err}",
                    time.perf_counter() - start)
+    finally:
+        torch.set_num_threads(threads)
 
 
 def discover_many(recordings, library=None, *, t, seeds=(0,), n_jobs=1, backend=None,
-                  **options) -> list[Run]:
+                  scheduler=None, out=None, **options) -> list[Run]:
     """Run :func:`discover_hidden` on every recording and seed, in parallel.
 
     Parameters
@@ -70,9 +84,16 @@ def discover_many(recordings, library=None, *, t, seeds=(0,), n_jobs=1, backend=
     seeds : sequence of int
         Every recording is run once per seed.
     n_jobs : int
-        Parallel workers (joblib; -1: one per core).
+        Parallel local workers (joblib; -1: one per core).
     backend : str, optional
         A joblib backend (default: joblib's local processes, "loky").
+    scheduler : str or distributed.Client, optional
+        Run on a Dask cluster instead: the scheduler's address (``"tcp://host:8786"``)
+        or a connected client (``pip install "latentsindy[cluster]"``). A run whose
+        worker dies is recorded as failed (``KilledWorker``) once Dask gives up on it.
+    out : path, optional
+        A folder: every run is written as it finishes, its result as ``NAME.npz``
+        (``NAME_seedS.npz`` with several seeds) and its row appended to ``runs.csv``.
     **options
         Passed to :func:`discover_hidden` (``feature_names``, ``closure_library``, ...).
 
@@ -94,15 +115,72 @@ def discover_many(recordings, library=None, *, t, seeds=(0,), n_jobs=1, backend=
         if key in options:
             raise TypeError(f"discover_many sets {key!r} itself; use seeds=[...] instead."
                             if key == "seed" else "discover_many runs quietly (verbose=False).")
-    jobs = [delayed(_one)(name, x, times[name], library, seed, options)
-            for name, x in recordings.items() for seed in seeds]
-    return list(Parallel(n_jobs=n_jobs, backend=backend)(jobs))
+    if scheduler is not None and backend is not None:
+        raise ValueError(f"give scheduler= (a Dask cluster) or backend= (joblib), not both; "
+                         f"got scheduler={scheduler!r} and backend={backend!r}.")
+    if scheduler is None and "device" in options:
+        options = options | {"device": val.check_device(options["device"])}
+    calls = [(name, x, times[name], library, seed, options)
+             for name, x in recordings.items() for seed in seeds]
+    write = _Writer(out, several_seeds=len(seeds) > 1) if out is not None else None
+    finished = {}
+    runs = (_on_dask(scheduler, calls) if scheduler is not None else
+            Parallel(n_jobs=n_jobs, backend=backend, return_as="generator_unordered")(
+                delayed(_one)(*call) for call in calls))
+    for run in runs:
+        if write is not None:
+            write(run)
+        finished[run.name, run.seed] = run
+    return [finished[name, seed] for name, _, _, _, seed, _ in calls]
+
+
+def _on_dask(scheduler, calls):
+    """Runs on a Dask cluster, yielded as they finish."""
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise ImportError("scheduler= runs on a Dask cluster and needs dask.distributed: "
+                          'pip install "latentsindy[cluster]".') from None
+    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    try:
+        futures = {client.submit(_one, *call, pure=False): call for call in calls}
+        for future in as_completed(futures):
+            name, seed = futures[future][0], futures[future][4]
+            try:
+                run = future.result()
+            except Exception as err:  # noqa: BLE001 - the worker died or the task was lost
+                run = Run(name, seed, None, f"{type(err).__name__}: {err}", math.nan)
+            future.release()
+            yield run
+    finally:
+        if client is not scheduler:
+            client.close()
+
+
+class _Writer:
+    """Writes each run as it finishes: its result file and its row of ``runs.csv``."""
+
+    def __init__(self, out, several_seeds: bool):
+        self.folder = Path(out)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.several_seeds = several_seeds
+        with open(self.folder / TABLE, "w", newline="") as fh:
+            csv.DictWriter(fh, fieldnames=COLUMNS).writeheader()
+
+    def path(self, run: Run) -> Path:
+        stem = f"{run.name}_seed{run.seed}" if self.several_seeds else run.name
+        return self.folder / f"{stem}.npz"
+
+    def __call__(self, run: Run) -> None:
+        if run.result is not None:
+            run.result.save(self.path(run))
+        with open(self.folder / TABLE, "a", newline="") as fh:
+            csv.DictWriter(fh, fieldnames=COLUMNS).writerow(run.row())
 
 
 def write_table(runs, path) -> None:
     """Write ``[r.row() for r in runs]`` as CSV."""
-    rows = [r.row() for r in runs]
     with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(fh, fieldnames=COLUMNS)
         writer.writeheader()
-        writer.writerows(rows)
+        writer.writerows(r.row() for r in runs)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pysindy as ps
 
+from .._core import validation as val
 from .._files.load import load
 from .._files.tables import DataError, read_columns
 from .._stage_two.discover import discover_hidden
@@ -85,6 +86,13 @@ def _discover(args) -> int:
     closure = parse_library(args.closure_library) if args.closure_library else None
     hidden_names = _names(args.hidden_names) if args.hidden_names else None
     files, batch = _data_files(args.data)
+    try:
+        val.check_device(args.device)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    if args.scheduler and not batch:
+        raise UsageError("--scheduler runs a folder or glob of data files on a Dask cluster; "
+                         f"{args.data} is one file: leave --scheduler out.")
     if batch:
         return _discover_batch(args, files, observed, library, closure, hidden_names)
     t, x = _series(files[0], args, observed)
@@ -93,7 +101,8 @@ def _discover(args) -> int:
     result = discover_hidden(x, library, t=t, feature_names=observed,
                              hidden_names=hidden_names, closure_library=closure,
                              generator=args.generator, refine=not args.no_refine,
-                             gaps=args.gaps, max_hidden=args.max_hidden, seed=args.seed,
+                             gaps=args.gaps, max_hidden=args.max_hidden, device=args.device,
+                             seed=args.seed,
                              verbose=not args.quiet)
     print(result.summary())
     if args.out:
@@ -111,21 +120,19 @@ def _discover_batch(args, files, observed, library, closure, hidden_names) -> in
         raise UsageError("data files must have distinct names (without suffix); got "
                          f"{[p.name for p in files]}.")
     data = {p.stem: _series(p, args, observed) for p in files}
-    _progress(args, f"discovering hidden states in {len(files)} files with {args.jobs} "
-                    f"worker(s) ...")
+    where = (f"on the Dask scheduler at {args.scheduler}" if args.scheduler else
+             f"with {args.jobs} worker(s)")
+    _progress(args, f"discovering hidden states in {len(files)} files {where} ...")
     runs = discover_many({k: x for k, (_, x) in data.items()}, library,
                          t={k: t for k, (t, _) in data.items()}, n_jobs=args.jobs,
-                         backend=args.backend, feature_names=observed,
+                         backend=args.backend, scheduler=args.scheduler, out=args.out,
+                         feature_names=observed,
                          hidden_names=hidden_names, closure_library=closure,
                          generator=args.generator, refine=not args.no_refine,
-                         gaps=args.gaps, max_hidden=args.max_hidden, seeds=[args.seed])
+                         gaps=args.gaps, max_hidden=args.max_hidden, device=args.device,
+                         seeds=[args.seed])
     if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        for run in runs:
-            if run.result is not None:
-                run.result.save(out / f"{run.name}.npz")
-        _progress(args, f"results written to {out}/")
+        _progress(args, f"results and runs.csv written to {args.out}/ as they finished")
     rows = [r.row() for r in runs]
     writer = csv.DictWriter(sys.stdout, fieldnames=list(rows[0]), lineterminator="\n")
     writer.writeheader()
@@ -200,13 +207,18 @@ def build_parser() -> argparse.ArgumentParser:
                         "time steps split a recording into segments (default) or are refused")
     d.add_argument("--max-hidden", type=int, default=3,
                    help="at most this many hidden states in any structure (default 3)")
+    d.add_argument("--device", default="cpu",
+                   help="torch device for stage one and the refinement (cpu, cuda, cuda:1)")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--out", help="write the result here (.npz; read with latentsindy show); "
-                               "for a folder or glob: a folder of results")
+                               "for a folder or glob: a folder of results and runs.csv, "
+                               "each written as it finishes")
     d.add_argument("--jobs", type=int, default=1,
                    help="parallel workers for a folder or glob (-1: one per core)")
     d.add_argument("--backend", help="joblib backend for the workers (default local "
                                      "processes; dask or ray once registered with joblib)")
+    d.add_argument("--scheduler", help="for a folder or glob: run on this Dask scheduler "
+                                       "(tcp://host:8786; needs latentsindy[cluster])")
     d.add_argument("--plot", help="write a figure here (.png, .pdf, ...; needs matplotlib)")
     d.add_argument("--quiet", action="store_true", help="no progress on stderr")
     d.set_defaults(run=_discover)

@@ -205,3 +205,25 @@ def free_rows(spec, states):
     if isinstance(spec, dict):
         return np.array([s not in spec for s in states])
     return np.zeros(len(states), dtype=bool)
+
+
+def check_device(device) -> str:
+    """A torch device name that exists on this machine ("cpu", "cuda", "cuda:1", ...)."""
+    import torch
+
+    expected = (f"device must be 'cpu' or a CUDA device ('cuda', 'cuda:0', ...); got "
+                f"{device!r}.")
+    try:
+        dev = torch.device(device)
+    except (TypeError, RuntimeError):
+        raise ValueError(expected) from None
+    if dev.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if dev.index is not None and dev.index >= count or count == 0:
+            raise ValueError(f"device {device!r} is not available: this machine has {count} "
+                             "CUDA device(s) and this torch build "
+                             f"({torch.__version__}) {'has' if torch.version.cuda else 'lacks'} "
+                             "CUDA support; use device='cpu' or a CUDA build of torch.")
+    elif dev.type != "cpu":
+        raise ValueError(expected)
+    return str(dev)

@@ -145,6 +145,7 @@ class DynamicSINDy:
         times = val.as_times(t, trajs)
         _check_shared_times(times)
         names = val.check_feature_names(feature_names, trajs[0].shape[1])
+        device = val.check_device(self.device)
         if isinstance(self.seed, bool) or not isinstance(self.seed, int | np.integer):
             raise TypeError(f"seed must be a non-negative int; got {self.seed!r}.")
         if self.seed < 0:
@@ -178,7 +179,7 @@ class DynamicSINDy:
         # variance of the derivative noise in normalised units (floored: no data are exact)
         self.noise_variance_ = max(float(np.mean((noise_std / self.derivative_scale_) ** 2)),
                                    1e-8)
-        dev = torch.device(self.device)
+        dev = torch.device(device)
         as_t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32,  # noqa: E731
                                          device=dev)
         theta_n = as_t(theta / self.feature_scale_)

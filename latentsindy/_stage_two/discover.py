@@ -41,7 +41,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
                     hidden_names=None, closure_library=None, generator="timevae",
                     generator_options=None, training=None, differentiation_method=None,
                     support=None, n_samples=64, refine=True, gaps="split", max_hidden=3,
-                    seed=0, verbose=True) -> HiddenDiscovery:
+                    device="cpu", seed=0, verbose=True) -> HiddenDiscovery:
     """Infer hidden variables and a closed, autonomous ODE from partial observations.
 
     Stage one fits time-varying coefficients Xi(t) (:class:`DynamicSINDy`); a
@@ -105,6 +105,11 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         segments share the law and each gets its own hidden initial values; segments
         under 32 samples are dropped with a note (:mod:`latentsindy._core.recordings`).
         ``"raise"``: missing values and gaps are an error.
+    device : str
+        Torch device for stage one's training and the refinement's integrations
+        ("cpu", default, or "cuda"). A GPU pays off for long series in stage one; the
+        refinement's batches are small, and on a GPU mostly wait on kernel launches
+        (README, "Speed").
     seed : int
     verbose : bool
 
@@ -127,6 +132,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
                         f"{type(closure_library).__name__}.")
     val.check_positive(n_samples, "n_samples", integer=True)
     val.check_positive(max_hidden, "max_hidden", integer=True)
+    device = val.check_device(device)
     if not isinstance(refine, bool):
         raise TypeError(f"refine must be True or False; got {refine!r}.")
     _, features = fit_library(check_library(library), trajs[:1], names)
@@ -147,7 +153,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         model = DynamicSINDy(library, generator=generator, generator_options=generator_options,
                              training=training, differentiation_method=differentiation_method,
                              support=support if k == 0 else fits[0].support_,
-                             device="cpu", verbose=verbose, seed=seed)
+                             device=device, verbose=verbose, seed=seed)
         fits.append(model.fit(x, tk, feature_names=names))
         coefs.append(model.coefficients(n_samples=n_samples))
     first = coefs[0]
@@ -169,7 +175,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         proposals = [evaluate(_named_structure(first.support, index), ctx, "hidden_terms")]
     if refine:
         with single_thread():
-            ordered, uncertain = judge_all(proposals, ctx, RefineOptions(), max_hidden,
+            ordered, uncertain = judge_all(proposals, ctx, RefineOptions(device=device), max_hidden,
                                            NESTED)
             result = from_verdicts(ordered, uncertain, ctx, first, hidden_names)
     else:

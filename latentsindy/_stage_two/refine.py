@@ -61,11 +61,15 @@ class RefineOptions:
         Levenberg-Marquardt iterations per pass.
     n_folds : int
         Interleaved folds of held-out segments for the score.
+    device : str
+        Torch device of the integrations ("cpu" or "cuda"); the normal equations are
+        solved on the CPU.
     """
 
     segment_samples: tuple[int, int] = (16, 50)
     max_iterations: int = 40
     n_folds: int = 4
+    device: str = "cpu"
 
 
 @dataclass(frozen=True)
@@ -135,7 +139,7 @@ class Problem:
         duration = float(np.clip(period / 8, lo * dt, hi * dt))
         bound = 1e3 * max(1.0, float(np.max(np.abs(np.vstack(guesses)))))
         self.bound = bound
-        self.integrator = Integrator(system, bound)
+        self.integrator = Integrator(system, bound, device=options.device)
         self._integrators = {system.free.tobytes(): self.integrator}
         # a finite step budget: at most MAX_GRID steps per segment, however fast the
         # initial system's rates (a system that needs more is stiff or wild; if it blows
@@ -155,7 +159,8 @@ class Problem:
         """The integrator of ``system`` (same features, its own free coefficients)."""
         key = system.free.tobytes()
         if key not in self._integrators:
-            self._integrators[key] = Integrator(system, self.bound, self.integrator.features)
+            self._integrators[key] = Integrator(system, self.bound, self.integrator.features,
+                                                self.options.device)
         return self._integrators[key]
 
     # ------------------------------------------------------------- residuals

@@ -78,11 +78,14 @@ def make_groups(times, observed, duration, step):
 class Integrator:
     """Integrates batches of segments of one system with forward sensitivities."""
 
-    def __init__(self, system: ParametricSystem, bound: float, features=None):
+    def __init__(self, system: ParametricSystem, bound: float, features=None, device="cpu"):
         self.system = system
         self.features = features or FeatureMap(system.features, system.symbols)
-        self.rows, self.cols = (torch.as_tensor(a) for a in np.nonzero(system.free))
+        self.device = torch.device(device)
+        self.rows, self.cols = (torch.as_tensor(a, device=self.device)
+                                for a in np.nonzero(system.free))
         self.bound = bound
+        self._on_device = {}  # id(group) -> (group, grid, positions on the device)
 
     def _check(self, y):
         top = float(y.abs().max())  # NaN fails the comparison too
@@ -111,6 +114,15 @@ class Integrator:
 
         return func
 
+    def _placed(self, group):
+        if self.device.type == "cpu":
+            return group.grid, group.positions
+        key = id(group)
+        if key not in self._on_device:
+            self._on_device[key] = (group, group.grid.to(self.device),
+                                    group.positions.to(self.device))
+        return self._on_device[key][1:]
+
     @torch.no_grad()
     def run(self, coef, starts, group: Group, sensitivities=True):
         """States (and sensitivities) at the group's sample times and at segment ends.
@@ -118,22 +130,23 @@ class Integrator:
         Returns ``(values, ends)``; with sensitivities each is a pair (state, S) where
         S is d state / d(start, free coefficients), shape (..., n, n + n_free).
         """
-        coef = torch.as_tensor(coef, dtype=torch.float64)
-        y0 = torch.as_tensor(starts, dtype=torch.float64)
+        like = dict(dtype=torch.float64, device=self.device)
+        coef = torch.as_tensor(coef, **like)
+        y0 = torch.as_tensor(starts, **like)
         n = y0.shape[-1]
         if sensitivities:
-            eye = torch.eye(n, dtype=torch.float64).expand(y0.shape[0], n, n)
-            z0 = torch.cat([y0[..., None], eye,
-                            torch.zeros(y0.shape[0], n, len(self.rows), dtype=torch.float64)],
-                           dim=-1)
+            eye = torch.eye(n, **like).expand(y0.shape[0], n, n)
+            z0 = torch.cat([y0[..., None], eye, torch.zeros(y0.shape[0], n, len(self.rows),
+                                                            **like)], dim=-1)
             func = self._field(coef)
         else:
             z0, func = y0, self._plain(coef)
-        z = odeint(func, z0, group.grid, method="rk4")  # (G, K, ...) on the grid
+        grid, positions = self._placed(group)
+        z = odeint(func, z0, grid, method="rk4")  # (G, K, ...) on the grid
         dz = func(None, z)
         z, dz = z.transpose(0, 1), dz.transpose(0, 1)  # (K, G, ...)
-        values = _hermite(z, dz, group.grid, group.positions)
-        ends = z[:, -1]
+        values = _hermite(z, dz, grid, positions).cpu()  # the caller's algebra is on the CPU
+        ends = z[:, -1].cpu()
         if sensitivities:
             return (values[..., 0], values[..., 1:]), (ends[..., 0], ends[..., 1:])
         return values, ends

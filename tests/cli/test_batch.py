@@ -1,8 +1,10 @@
-"""Many recordings at once: two workers give what one-by-one calls give, failures are
+"""Many recordings at once: two local workers and a Dask cluster give what one-by-one
+calls give, runs are written as they finish, failures (a worker that dies too) are
 recorded, and the command line runs a folder into one table."""
 
 import csv
 import io
+import os
 
 import numpy as np
 import pysindy as ps
@@ -25,21 +27,72 @@ def recordings():
     return out
 
 
-def test_two_workers_give_the_one_by_one_results(recordings):
+@pytest.fixture(scope="module")
+def alone(recordings):
+    """Each recording discovered on its own, in this process."""
+    return {name: discover_hidden(x, LIBRARY, t=t, feature_names=["x"], verbose=False)
+            for name, (t, x) in recordings.items()}
+
+
+def _same_as_alone(run, alone):
+    assert run.error is None and run.wall > 0
+    assert [(a.state, a.feature) for a in run.result.terms] == \
+        [(a.state, a.feature) for a in alone[run.name].terms]
+    np.testing.assert_allclose([a.value for a in run.result.terms],
+                               [a.value for a in alone[run.name].terms], rtol=1e-6)
+    row = run.row()
+    assert row["hidden_states"] == 1 and row["error"] == ""
+
+
+def test_two_workers_give_the_one_by_one_results(recordings, alone):
     runs = discover_many({k: x for k, (_, x) in recordings.items()}, LIBRARY,
                          t={k: t for k, (t, _) in recordings.items()}, n_jobs=2,
                          feature_names=["x"])
     assert [r.name for r in runs] == ["worm1", "worm2"]
     for run in runs:
-        t, x = recordings[run.name]
-        alone = discover_hidden(x, LIBRARY, t=t, feature_names=["x"], verbose=False)
-        assert run.error is None and run.wall > 0
-        assert [(a.state, a.feature) for a in run.result.terms] == \
-            [(a.state, a.feature) for a in alone.terms]
-        np.testing.assert_allclose([a.value for a in run.result.terms],
-                                   [a.value for a in alone.terms], rtol=1e-6)
-        row = run.row()
-        assert row["hidden_states"] == 1 and row["error"] == ""
+        _same_as_alone(run, alone)
+
+
+def test_a_dask_cluster_gives_the_local_results_and_keeps_them_when_a_worker_dies(
+        recordings, alone, tmp_path):
+    pytest.importorskip("distributed")
+    import dask
+    from distributed import LocalCluster
+
+    class DiesOnShortRecordings(ps.PolynomialLibrary):
+        """Kills the worker process that fits it to a recording of 100 samples."""
+
+        def fit(self, x, *args, **kwargs):
+            if len(x[0]) == 100:
+                os._exit(1)
+            return super().fit(x, *args, **kwargs)
+
+    t = recordings["worm1"][0]
+    data = {k: x for k, (_, x) in recordings.items()}
+    data |= {"dies": data["worm1"][:100], "flat": np.ones_like(data["worm1"])}
+    # a task whose worker died is not retried, so the test does not wait for restarts
+    with (dask.config.set({"distributed.scheduler.allowed-failures": 0}),
+          LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                       dashboard_address=None) as cluster):
+        runs = discover_many(data, DiesOnShortRecordings(degree=3, include_bias=False),
+                             t={"worm1": t, "worm2": t, "dies": t[:100], "flat": t},
+                             scheduler=cluster.scheduler_address, out=tmp_path,
+                             feature_names=["x"])
+    assert [r.name for r in runs] == ["worm1", "worm2", "dies", "flat"]
+    for run in runs[:2]:
+        _same_as_alone(run, alone)
+    dies, flat = runs[2:]
+    assert dies.result is None and dies.error.startswith("KilledWorker")
+    assert flat.result is None and flat.error.startswith("ValueError")
+    # every run was written as it finished: its row (and its result, if any)
+    with open(tmp_path / "runs.csv") as fh:
+        rows = {r["name"]: r for r in csv.DictReader(fh)}
+    assert set(rows) == {"worm1", "worm2", "dies", "flat"}
+    assert rows["dies"]["wall_s"] == "" and rows["worm2"]["hidden_states"] == "1"
+    assert sorted(p.name for p in tmp_path.glob("*.npz")) == ["worm1.npz", "worm2.npz"]
+    assert load(tmp_path / "worm1.npz").hidden_names == ("h0",)
+    with pytest.raises(ValueError, match="not both"):
+        discover_many(data, LIBRARY, t=t, scheduler="tcp://nowhere:8786", backend="loky")
 
 
 def test_a_failed_run_is_recorded_and_the_others_go_on(recordings):
@@ -69,6 +122,15 @@ def test_command_line_runs_a_folder_into_one_table(recordings, tmp_path, capsys)
     assert [r["name"] for r in rows] == ["worm1", "worm2"]
     assert all(r["hidden_states"] == "1" and r["error"] == "" for r in rows)
     assert load(tmp_path / "out" / "worm2.npz").hidden_names == ("h0",)
+    with open(tmp_path / "out" / "runs.csv") as fh:
+        assert sorted(r["name"] for r in csv.DictReader(fh)) == ["worm1", "worm2"]
     assert main(["discover", str(tmp_path / "*.nothing"), "--time", "t", "--observed", "x",
                  "--quiet"]) == 2
     assert "no data files" in capsys.readouterr().err
+    one = str(folder / "worm1.csv")
+    assert main(["discover", one, "--time", "t", "--observed", "x", "--scheduler",
+                 "tcp://localhost:8786", "--quiet"]) == 2
+    assert "leave --scheduler out" in capsys.readouterr().err
+    assert main(["discover", one, "--time", "t", "--observed", "x", "--device", "tpu",
+                 "--quiet"]) == 2
+    assert "device must be 'cpu' or a CUDA device" in capsys.readouterr().err

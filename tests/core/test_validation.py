@@ -3,8 +3,9 @@
 import numpy as np
 import pysindy as ps
 import pytest
+import torch
 
-from latentsindy import DynamicSINDy, systems
+from latentsindy import DynamicSINDy, discover_hidden, systems
 
 
 @pytest.fixture(scope="module")
@@ -136,3 +137,14 @@ def test_bad_seed(data):
         fit(data.x, data.t, init={"seed": -1})
     with pytest.raises(TypeError, match="seed must be a non-negative int; got True"):
         fit(data.x, data.t, init={"seed": True})
+
+
+def test_device_must_exist(data):
+    with pytest.raises(ValueError, match=r"device must be 'cpu' or a CUDA device .*got 'tpu'"):
+        DynamicSINDy(ps.PolynomialLibrary(degree=2), device="tpu").fit(data.x, data.t)
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    with pytest.raises(ValueError, match=rf"device 'cuda:{count}' is not available: this "
+                                         rf"machine has {count} CUDA device\(s\)"):
+        DynamicSINDy(ps.PolynomialLibrary(degree=2), device=f"cuda:{count}").fit(data.x, data.t)
+    with pytest.raises(ValueError, match="got 'gpu'"):
+        discover_hidden(data.x[:, :1], t=data.t, device="gpu", verbose=False)
