@@ -83,9 +83,11 @@ def run_hypersindy(device, n_times):
     _sync(device)
     wall = time.perf_counter() - start
     epochs = len({(h["phase"], h.get("epoch")) for h in model.history_ if "epoch" in h})
+    terms = ", ".join(f"{model.feature_names_[j]} in d{model.state_names_[i]}"
+                      for i, j in zip(*np.nonzero(model.support_), strict=True))
     return {"wall_s": wall, "memory_mb": _memory(device, base),
             "result": f"{epochs} epochs, {wall / (epochs * n_times / 1e4):.2f} s per 10k "
-                      f"samples, {int(model.support_.sum())} terms"}
+                      f"samples, {int(model.support_.sum())} terms ({terms})"}
 
 
 def run_discover(device, n_times):

@@ -190,6 +190,7 @@ def run_one(family, index, noise, verbose=False, nested=False):
             result = discover_hidden(d.observed, FAMILIES[family].library(), t=d.t,
                                      feature_names=list(d.observed_names), verbose=verbose)
         row["wall"] = time.perf_counter() - start
+        row["timings"] = result.timings
         row.update(score(result, d))
         row["uncertain"] = bool(result.uncertain)
         row["confident"] = result.confident
@@ -238,6 +239,31 @@ def table(rows):
     return "\n".join(lines)
 
 
+# the columns of the time split: stage one (its parts together), then stage two's stages
+SPLIT = {"stage one": ("differentiation", "stage one: exact model", "stage one: generator",
+                       "stage one: posterior samples"),
+         "generator": ("stage one: generator",),
+         "proposals and closure": ("smoothing", "proposals", "closure"),
+         "refinement": ("refinement",), "term selection": ("term selection",),
+         "held-out score": ("held-out score",), "restatements": ("restatements",),
+         "checks and other": ("checks and result", "other")}
+
+
+def time_split(rows):
+    """Median wall seconds by stage per family and noise (``result.timings``)."""
+    lines = ["| family | noise | wall | " + " | ".join(SPLIT) + " |",
+             "|---" * (3 + len(SPLIT)) + "|"]
+    keys = sorted({(r["family"], r["noise"]) for r in rows if "timings" in r},
+                  key=lambda k: (list(FAMILIES).index(k[0]), k[1]))
+    for fam, noise in keys:
+        rs = [r for r in rows if r["family"] == fam and r["noise"] == noise and "timings" in r]
+        cells = [np.median([sum(r["timings"].get(s, 0.0) for s in stages) for r in rs])
+                 for stages in SPLIT.values()]
+        lines.append(f"| {fam} | {noise:.0%} | {np.median([r['wall'] for r in rs]):.1f} | "
+                     + " | ".join(f"{c:.1f}" for c in cells) + " |")
+    return "\n".join(lines)
+
+
 def main(families=None, draws=10, noise=NOISE, out=None, verbose=False, jobs=1,
          nested=False):
     families = list(families or FAMILIES)
@@ -254,6 +280,8 @@ def main(families=None, draws=10, noise=NOISE, out=None, verbose=False, jobs=1,
     rows = run_all(run_one, tasks, report, jobs, out)
     print()
     print(table(rows))
+    print("\nWhere the time goes (median seconds; stage one includes its generator):\n")
+    print(time_split(rows))
     return rows
 
 

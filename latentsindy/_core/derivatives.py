@@ -19,6 +19,7 @@ from scipy.signal import savgol_coeffs, savgol_filter
 
 from . import local_fits
 from .local_fits import ORDER as _POLYORDER
+from .timing import timed
 
 
 def noise_level(x, t=None) -> np.ndarray:
@@ -245,6 +246,7 @@ def derivative_noise_std(method, x, t, x_dot, sigma=None):
     return sigma * np.sqrt(gain)
 
 
+@timed("differentiation")
 def differentiate(method, trajectories, times):
     """Apply a pysindy differentiation method to each trajectory; reject NaN edges.
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._core.timing import timed
 from .structure import LOG_PRIOR_ODDS, EquationChoice, penalised
 
 BAND = 2.0  # standard deviations: a 95% interval
@@ -48,6 +49,7 @@ class Assessment:
     doubts: tuple[str, ...]
 
 
+@timed("stage one: exact model")
 def assess(exact, support, varying, choices, generator_mean, threshold, states, features,
            scale, generator_misfit=None) -> Assessment:
     """Assess a finished fit.

@@ -14,6 +14,7 @@ from .._core import validation as val
 from .._core.derivatives import differentiate, noise_level
 from .._core.library import check_library, fit_library
 from .._core.local_fits import positions as time_positions
+from .._core.timing import timed
 from ..generators import build_generator, generator_class
 from .assessment import assess
 from .coefficients import CoefficientSeries
@@ -254,6 +255,7 @@ class DynamicSINDy:
         return self
 
     # ------------------------------------------------------------ results
+    @timed("stage one: posterior samples")
     def coefficients(self, n_samples: int = 64) -> CoefficientSeries:
         """Posterior mean, spread and samples of Xi(t) in physical units."""
         self._check_fitted()

@@ -18,6 +18,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .._core.derivatives import choose_window
+from .._core.timing import timed
 from .structure import EquationChoice, StructureSearch, thresholded_constants
 from .vcm import LevelGram, spline_basis
 from .vcm_fit import EquationFit, EquationModel
@@ -49,6 +50,7 @@ class VaryingCoefficients:
     noise_std : (S,) array: the measurement noise of each state
     """
 
+    @timed("stage one: exact model")
     def __init__(self, trajectories, times, thetas, derivative_scale, noise_std):
         t0 = min(float(t[0]) for t in times)
         t1 = max(float(t[-1]) for t in times)
@@ -67,6 +69,7 @@ class VaryingCoefficients:
         """The spline basis at other times (for :meth:`EquationFit.series`)."""
         return spline_basis(np.asarray(times, float), self.n_knots, self.span)
 
+    @timed("stage one: exact model")
     def choose(self, support, varying, free_rows, allowed, threshold):
         """The structure of every equation, by evidence (``structure`` module).
 

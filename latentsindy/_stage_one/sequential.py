@@ -22,6 +22,7 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
+from .._core.timing import timed
 from ..generators.hypersindy import detach_state
 from .decisions import freeze_constant_terms, restore_absorbed_terms, restore_terms
 from .sequential_model import SequentialCoefficientModel, window_loss, windowed_constants
@@ -44,6 +45,7 @@ def _epochs(steps, per_epoch, minimum):
     return max(minimum, math.ceil(steps / per_epoch)) if steps else 0
 
 
+@timed("stage one: generator")
 def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
                      options: SequentialTrainingOptions, verbose: bool, decide=None):
     """Two-phase windowed training in place; returns the loss history (one dict per step).

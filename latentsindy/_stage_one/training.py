@@ -10,6 +10,7 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
+from .._core.timing import timed
 from .decisions import restore_absorbed_terms, restore_terms
 
 _EPS = torch.finfo(torch.float32).eps
@@ -265,6 +266,7 @@ def _cosine(step, total, lr0, lr_min):
     return lr_min + 0.5 * (lr0 - lr_min) * (1 + math.cos(math.pi * min(step / max(total, 1), 1)))
 
 
+@timed("stage one: generator")
 def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
           options: TrainingOptions, verbose: bool, decide=None):
     """Two-phase training in place; returns the loss history (one dict per step).

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import sympy as sp
 
+from .._core.timing import timed
 from .first_integral import integrated_system
 from .judge import build, exchangeable_terms, weakly_supported_terms
 from .nested import monomial_name
@@ -110,6 +111,7 @@ def _describe_origin(p):
     return f"{p.origin} ({p.n_states} hidden)"
 
 
+@timed("checks and result")
 def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
     """The result of a refined discovery: ``ordered`` verdicts, best first."""
     best = ordered[0]

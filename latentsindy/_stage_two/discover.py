@@ -19,6 +19,7 @@ from .._core import recordings
 from .._core import validation as val
 from .._core.derivatives import AdaptiveSavitzkyGolay, noise_level, window_capped
 from .._core.library import check_library, feature_expressions, fit_library
+from .._core.timing import recording, timed
 from .._stage_one.estimator import DynamicSINDy
 from .assemble import from_proposals, from_verdicts
 from .hypotheses import Context, evaluate, propose
@@ -116,7 +117,19 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     Returns
     -------
     HiddenDiscovery
+        Its ``timings`` say where the time went (wall seconds by stage).
     """
+    with recording() as seconds:
+        result = _discover(x_observed, library, t, feature_names, hidden_terms, hidden_names,
+                           closure_library, generator, generator_options, training,
+                           differentiation_method, support, n_samples, refine, gaps,
+                           max_hidden, device, seed, verbose)
+    return dataclasses.replace(result, timings=dict(seconds))
+
+
+def _discover(x_observed, library, t, feature_names, hidden_terms, hidden_names,
+              closure_library, generator, generator_options, training, differentiation_method,
+              support, n_samples, refine, gaps, max_hidden, device, seed, verbose):
     segments, seg_times, use = recordings.split(x_observed, t, gaps=gaps)
     # the longest segment first: stage one's coefficients (and the result's first
     # trajectory) come from it
@@ -188,6 +201,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     return dataclasses.replace(result, notes=result.notes + notes, data_use=use)
 
 
+@timed("smoothing")
 def _context(model, trajs, times, names, first, closure_library, support):
     smoothed, spans, capped = [], [], []
     for x, tk in zip(trajs, times, strict=True):

@@ -27,6 +27,7 @@ import numpy as np
 import sympy as sp
 
 from .._core.derivatives import AdaptiveSavitzkyGolay
+from .._core.timing import timed
 from .closure import ClosureFit, fit_closure, fit_rate_closure
 from .smoother import HiddenFit, Structure, fit_hidden, single_term
 
@@ -84,6 +85,7 @@ def evaluate(structure, ctx: Context, origin: str, order: int = 1) -> Proposal:
     return close(structure, fit, ctx, origin, order)
 
 
+@timed("closure")
 def close(structure, fit, ctx, origin, order=1):
     """Closure of a fitted structure; ``order=2`` adds the rate of the (single) hidden
     state as a second hidden state and closes the rate."""
@@ -112,6 +114,7 @@ def _derivative(series, t, edge=False):
     return rate
 
 
+@timed("proposals")
 def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=MAX_RANK):
     """Ranked proposals (best first) for the judge.
 

@@ -18,6 +18,7 @@ import numpy as np
 import sympy as sp
 
 from .._core.library import feature_expressions
+from .._core.timing import stage, timed
 from .field import ParametricSystem
 from .first_integral import integrated_proposal, integrated_system
 from .gauge import shifted_guesses, shifted_proposal, shifted_system
@@ -128,11 +129,12 @@ class _Trial:
 
 def _first_fit(p: Proposal, ctx: Context, options) -> _Trial | None:
     system, candidates, guesses = nested_system(p, ctx, build) if p.nested else build(p, ctx)
-    problem = Problem(system, ctx.times, ctx.observed, guesses, options)
     try:
-        initial = problem.equations(system, problem.initial_starts,
-                                    np.ones(problem.n_segments), 1.0, jacobian=False)
-        fit = problem.fit(system)
+        with stage("refinement"):
+            problem = Problem(system, ctx.times, ctx.observed, guesses, options)
+            initial = problem.equations(system, problem.initial_starts,
+                                        np.ones(problem.n_segments), 1.0, jacobian=False)
+            fit = problem.fit(system)
     except BlowUp:
         return None  # the proposal's system cannot even be integrated from its guesses
     return _Trial(p, problem, fit, candidates, float(np.sqrt(initial.data_cost /
@@ -235,6 +237,7 @@ def _integrated(verdict: Verdict, options) -> Verdict | None:
     return _restated(proposal, system, guesses, data, verdict, options)
 
 
+@timed("restatements")
 def _restated(proposal, system, guesses, data, verdict, options) -> Verdict | None:
     """``verdict``'s system restated as ``system`` (from ``guesses``), refined, its terms
     selected and scored on ``data`` (times, observed); None if it cannot be integrated."""

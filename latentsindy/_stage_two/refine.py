@@ -28,6 +28,7 @@ import scipy.sparse as sps
 import torch
 
 from .._core.derivatives import noise_level
+from .._core.timing import timed
 from .field import ParametricSystem
 from .shooting import BlowUp, Integrator, NormalEquations, make_groups, solve
 
@@ -326,6 +327,7 @@ class Problem:
         return np.array(errors)
 
 
+@timed("held-out score")
 def cross_validate(problem: Problem, fit: Fit, max_iterations=10):
     """Held-out misfit by interleaved folds of segments: (mean, standard error, per
     segment errors). Each fold starts from ``fit`` and is refitted without its data."""

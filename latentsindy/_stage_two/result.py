@@ -159,6 +159,11 @@ class HiddenDiscovery:
     data_use : DataUse or None
         Recordings, segments and samples used, rows with missing values dropped, and
         where each segment came from (None in files written before version 4).
+    timings : dict {stage: seconds}
+        Wall time of the discovery by stage (differentiation, stage one's exact model,
+        generator and posterior samples, smoothing, proposals, closure, refinement,
+        term selection, held-out score, restatements, checks and result, other), each
+        exclusive of the others; empty for results loaded from files.
     """
 
     times: np.ndarray
@@ -183,6 +188,7 @@ class HiddenDiscovery:
     initial_state: np.ndarray = field(repr=False, default=None)
     doubts: tuple = ()
     data_use: DataUse | None = None
+    timings: dict = field(repr=False, default_factory=dict)
 
     # ----------------------------------------------------------- views
     @property

@@ -26,6 +26,7 @@ import numpy as np
 import scipy.sparse as sps
 import scipy.sparse.linalg as spla
 
+from .._core.timing import timed
 from .field import ParametricSystem
 from .refine import Fit, Problem
 from .shooting import BlowUp
@@ -44,6 +45,7 @@ AMBIGUITY = 4.0
 EVIDENCE = 10.0
 
 
+@timed("term selection")
 def select_terms(problem: Problem, fit: Fit, candidates, max_steps=MAX_STEPS):
     """Improve the set of free coefficients of ``fit.system`` by BIC; ``candidates``
     (bool, like ``system.free``) are the coefficients that may be added. Returns the

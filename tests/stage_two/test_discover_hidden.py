@@ -57,6 +57,10 @@ def test_lv_refinement_is_reported(lv):
     text = result.summary()
     assert "h = coefficient of x in dx/dt" in text
     assert "refined by integration" in text and "+-" in text
+    # where the time went: every stage ran, each a positive share
+    assert {"differentiation", "stage one: generator", "proposals", "closure", "refinement",
+            "term selection", "held-out score", "other"} <= set(result.timings)
+    assert all(v > 0 for v in result.timings.values())
 
 
 def test_lv_with_one_percent_noise():
