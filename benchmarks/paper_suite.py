@@ -247,14 +247,19 @@ def figure(name, cases, all_series, all_data, folder=FIGURES):
     plt.close(fig)
 
 
-def main(quick=False, seed=0):
+GROUPS = ("oscillator", "lorenz", "lorenz_10k")
+
+
+def main(quick=False, seed=0, only=GROUPS):
     torch.set_num_threads(2)
     groups = {"oscillator": oscillator_cases(), "lorenz": lorenz_cases("timevae"),
               "lorenz_10k": lorenz_cases("hypersindy")}
-    if quick:
+    groups = {k: v for k, v in groups.items() if k in only}
+    if quick and set(only) == set(GROUPS):
         groups = {"oscillator": [c for c in groups["oscillator"]
                                  if c.shape in ("switch", "sinusoids")],
                   "lorenz": [groups["lorenz"][0]], "lorenz_10k": []}
+    quick = quick or set(only) != set(GROUPS)  # a part must not overwrite the figures
     results, total = {}, time.perf_counter()
     for group, cases in groups.items():
         all_series, all_data = {}, {}
@@ -265,7 +270,8 @@ def main(quick=False, seed=0):
             print(f"done {case.name} ({time.perf_counter() - total:.0f} s)", flush=True)
         if cases:  # the quick preset must not overwrite the README's figures
             figure(group, cases, all_series, all_data, OUT if quick else FIGURES)
-    unc = uncertainty(UNCERTAINTY_STDS[1::2] if quick else UNCERTAINTY_STDS, seed)
+    unc = (uncertainty(UNCERTAINTY_STDS[1::2] if quick else UNCERTAINTY_STDS, seed)
+           if set(only) == set(GROUPS) else [])
     print(table(results))
     print()
     print(summary(results))
@@ -287,5 +293,8 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--groups", nargs="+", choices=GROUPS, default=list(GROUPS),
+                        help="run these groups of cases only (figures go to "
+                             "benchmarks/output/)")
     args = parser.parse_args()
-    main(args.quick, args.seed)
+    main(args.quick, args.seed, tuple(args.groups))

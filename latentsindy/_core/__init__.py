@@ -10,5 +10,6 @@ workflow use, and nothing that knows about either stage.
 * ``symbolic``: a closed system's sympy right-hand side as a numpy/torch callable;
 * ``simulate``: integration with a finite step budget, blow-ups reported;
 * ``figures``: matplotlib on demand and saving figures;
-* ``saving``: the hook through which result types are written by ``latentsindy._files``.
+* ``saving``: the hook through which result types are written by ``latentsindy._files``;
+* ``timing``: wall time by stage (a discovery's ``timings``).
 """

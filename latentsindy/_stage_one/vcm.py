@@ -23,7 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 
 ORDER = 4  # cubic B-splines: four non-zero basis functions at every time
-_BLOCK = 6_000  # windows per block when the normal equations are accumulated
+# samples x knots x features held at once when the normal equations are accumulated
+# (each (windows, window length, reach, F) array of a block: 32 MB in float64)
+_BLOCK = 4_000_000
 
 
 def spline_basis(times: np.ndarray, n_knots: int, span: tuple[float, float]):
@@ -106,8 +108,10 @@ class LevelGram:
         self.yy = np.zeros(n_states)
         for x, t, th, (first, values, starts, stops) in zip(states, times, thetas, plans,
                                                            strict=True):
-            for lo in range(0, len(starts), _BLOCK):
-                sl = slice(lo, lo + _BLOCK)
+            length = int(np.max(stops - starts))
+            per_block = max(1, _BLOCK // (length * reach * n_features))
+            for lo in range(0, len(starts), per_block):
+                sl = slice(lo, lo + per_block)
                 self._add(*_level_integrals(x, t, th, first, values, starts[sl], stops[sl],
                                             reach))
         self.band = self.band[:, :n_knots]

@@ -120,6 +120,7 @@ class FeatureMap:
     def __init__(self, features, symbols):
         symbols = list(symbols)
         self.n_states = len(symbols)
+        self._cache = {}
         self.exponents = _exponents(features, symbols)
         if self.exponents is None:
             grads = [[sp.diff(f, s) for s in symbols] for f in features]
@@ -135,25 +136,33 @@ class FeatureMap:
         """``phi`` (..., F) and, if asked, ``dphi`` (..., F, n)."""
         if self.exponents is None:
             return self._lambdified(y, gradients)
-        e = torch.as_tensor(self.exponents, device=y.device)
+        e_t, lower_t, e_float, eye = self._constants(y)
         # powers[..., s, d] = y_s ** d for d = 0..degree
         powers = [torch.ones_like(y)]
         for _ in range(self.degree):
             powers.append(powers[-1] * y)
         powers = torch.stack(powers, dim=-1)  # (..., n, D + 1)
-        idx = e.T.expand(*y.shape[:-1], *e.T.shape)  # (..., n, F)
+        idx = e_t.expand(*y.shape[:-1], *e_t.shape)  # (..., n, F)
         factors = torch.gather(powers, -1, idx).transpose(-1, -2)  # (..., F, n)
         phi = factors.prod(dim=-1)
         if not gradients:
             return phi, None
-        lower = torch.gather(powers, -1, (idx - 1).clamp_min(0)).transpose(-1, -2)
-        deriv = e.to(y.dtype) * lower  # d factor_s / d y_s, (..., F, n)
-        n = self.n_states
-        eye = torch.eye(n, dtype=torch.bool, device=y.device)
+        lower = torch.gather(powers, -1, lower_t.expand(*y.shape[:-1], *lower_t.shape))
+        deriv = e_float * lower.transpose(-1, -2)  # d factor_s / d y_s, (..., F, n)
         # product over s' of factors, with factor s replaced by its derivative
         stacked = torch.where(eye, deriv[..., None, :], factors[..., None, :])
         dphi = stacked.prod(dim=-1)  # (..., F, n)
         return phi, dphi
+
+    def _constants(self, y):
+        """Exponent tables on ``y``'s device and dtype (made once per device and dtype:
+        the refinement calls this map thousands of times on small batches)."""
+        key = (y.device, y.dtype)
+        if key not in self._cache:
+            e = torch.as_tensor(self.exponents, device=y.device)
+            self._cache[key] = (e.T, (e.T - 1).clamp_min(0), e.to(y.dtype),
+                                torch.eye(self.n_states, dtype=torch.bool, device=y.device))
+        return self._cache[key]
 
     def _lambdified(self, y, gradients):
         cols = torch.unbind(y, dim=-1)

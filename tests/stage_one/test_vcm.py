@@ -6,7 +6,9 @@ import pytest
 from scipy.linalg import cholesky_banded
 from scipy.special import gammaln
 
-from latentsindy._stage_one.evidence import VaryingCoefficients, resolution
+from latentsindy._core.derivatives import choose_window
+from latentsindy._stage_one import vcm
+from latentsindy._stage_one.evidence import MAX_KNOTS, VaryingCoefficients, resolution
 from latentsindy._stage_one.vcm import LevelGram, spline_basis
 from latentsindy._stage_one.vcm_fit import EquationModel, _Normal, selected_inverse
 
@@ -114,6 +116,33 @@ def test_resolution_follows_the_noise():
     t, clean, _ = _varying_oscillator(0.0)
     _, noisy, _ = _varying_oscillator(0.05)
     assert resolution(clean, t)[0] > resolution(noisy, t)[0]
+
+
+def test_integration_windows_stay_short_where_the_knots_are_capped():
+    """A series long enough to cap the knots (MAX_KNOTS): the windows stay two
+    differentiator windows long instead of growing with the knot spacing (which
+    integrated the library's noise over thousands of samples on 10^6 Lorenz samples)."""
+    t = np.linspace(0.0, 4000.0, 200_000)
+    x = np.column_stack([np.sin(t), np.cos(1.3 * t)])
+    x += 0.01 * np.random.default_rng(0).standard_normal(x.shape)
+    n_knots, window = resolution(x, t)
+    differentiator = min(choose_window(x[:, j], t=t) for j in range(2))
+    assert n_knots == MAX_KNOTS and (len(t) - 1) / (n_knots - 3) > differentiator
+    assert window == max(4, round(2 * differentiator))
+
+
+def test_normal_equations_do_not_depend_on_the_block_size(monkeypatch):
+    """The normal equations are accumulated in blocks of windows (bounded memory):
+    blocks of one window give the same matrices as one block."""
+    t, x = np.linspace(0, 10, 300), np.random.default_rng(2).normal(size=(300, 2))
+    theta = np.column_stack([np.ones(300), x])
+    whole = LevelGram([x], [t], [theta], 20, (0.0, 10.0), 12)
+    monkeypatch.setattr(vcm, "_BLOCK", 1)
+    pieces = LevelGram([x], [t], [theta], 20, (0.0, 10.0), 12)
+    for name in ("band", "spline_const", "spline_y", "const", "const_y", "yy"):
+        np.testing.assert_allclose(getattr(pieces, name), getattr(whole, name), rtol=1e-12,
+                                   atol=1e-12)
+    assert pieces.n == whole.n
 
 
 def test_a_hidden_state_is_not_split_into_state_functions():
