@@ -96,12 +96,17 @@ def test_a_dask_cluster_gives_the_local_results_and_keeps_them_when_a_worker_die
 
 
 def test_a_failed_run_is_recorded_and_the_others_go_on(recordings):
+    """Local workers: each failure is recorded with its message and the batch goes on
+    (a good run beside failures: the Dask test)."""
     t, x = recordings["worm1"]
-    runs = discover_many({"good": x, "flat": np.ones_like(x)}, LIBRARY, t=t,
-                         feature_names=["x"])
-    good, flat = runs
-    assert good.error is None and flat.result is None
-    assert flat.error.startswith("ValueError") and flat.row()["hidden_states"] == ""
+    runs = discover_many({"unmeasured": np.full_like(x, np.nan), "short": x[:10]}, LIBRARY,
+                         t={"unmeasured": t, "short": t[:10]}, feature_names=["x"], n_jobs=2)
+    unmeasured, short = runs
+    assert unmeasured.result is None and short.result is None
+    assert unmeasured.error.startswith("ValueError: x_observed has state column(s) [0] "
+                                       "with no finite value")
+    assert unmeasured.row()["hidden_states"] == ""
+    assert short.error.startswith("ValueError") and "10" in short.error
     with pytest.raises(TypeError, match="use seeds="):
         discover_many([x], LIBRARY, t=t, seed=3)
     with pytest.raises(ValueError, match=r"t has no entry for recording\(s\) \['1'\]"):
