@@ -177,10 +177,3 @@ class _Writer:
         with open(self.folder / TABLE, "a", newline="") as fh:
             csv.DictWriter(fh, fieldnames=COLUMNS).writerow(run.row())
 
-
-def write_table(runs, path) -> None:
-    """Write ``[r.row() for r in runs]`` as CSV."""
-    with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=COLUMNS)
-        writer.writeheader()
-        writer.writerows(r.row() for r in runs)

@@ -20,7 +20,7 @@ from .._core import validation as val
 from .._files.load import load
 from .._files.tables import DataError, read_columns
 from .._stage_two.discover import discover_hidden
-from .batch import discover_many
+from .batch import COLUMNS, discover_many
 
 EXIT_USAGE = 2
 EXIT_FAILED = 1
@@ -133,10 +133,9 @@ def _discover_batch(args, files, observed, library, closure, hidden_names) -> in
                          seeds=[args.seed])
     if args.out:
         _progress(args, f"results and runs.csv written to {args.out}/ as they finished")
-    rows = [r.row() for r in runs]
-    writer = csv.DictWriter(sys.stdout, fieldnames=list(rows[0]), lineterminator="\n")
+    writer = csv.DictWriter(sys.stdout, fieldnames=COLUMNS, lineterminator="\n")
     writer.writeheader()
-    writer.writerows(rows)
+    writer.writerows(r.row() for r in runs)
     return 0 if all(r.error is None for r in runs) else EXIT_FAILED
 
 

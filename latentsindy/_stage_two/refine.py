@@ -147,7 +147,7 @@ class Problem:
         # up on that grid, that is reported as BlowUp)
         step = float(np.clip(_stable_step(self.integrator, guesses, system.coef),
                              duration / MAX_GRID, duration / 2))
-        self.groups = make_groups(self.times, self.observed, duration, step)
+        self.groups = make_groups(self.times, self.observed, duration, step, options.device)
         self.n_segments = sum(g.n_segments for g in self.groups)
         starts = []
         for g in self.groups:

@@ -37,16 +37,17 @@ class Group:
     trajectory: int
     first: int  # index of the first segment in the global list
     n_segments: int
-    grid: torch.Tensor  # (G,) relative times of the integration grid
-    positions: torch.Tensor  # (K, M) relative sample times (padded)
+    grid: torch.Tensor  # (G,) relative times of the integration grid (on the device)
+    positions: torch.Tensor  # (K, M) relative sample times, padded (on the device)
     observed: torch.Tensor  # (K, M, n_observed) data (padded)
     mask: torch.Tensor  # (K, M) bool: a real sample
     sample_index: np.ndarray  # (K, M) index of the sample in its trajectory (-1: padding)
     starts: np.ndarray  # (K,) absolute start times
 
 
-def make_groups(times, observed, duration, step):
-    """Cut every trajectory into segments of about ``duration`` with grid ``step``."""
+def make_groups(times, observed, duration, step, device="cpu"):
+    """Cut every trajectory into segments of about ``duration`` with grid ``step``; the
+    integration grid and sample positions live on ``device``, the data on the CPU."""
     groups, first = [], 0
     for k, (t, x) in enumerate(zip(times, observed, strict=True)):
         span = float(t[-1] - t[0])
@@ -66,9 +67,10 @@ def make_groups(times, observed, duration, step):
             obs[s, :len(rows)] = x[rows]
             mask[s, :len(rows)] = True
             index[s, :len(rows)] = rows
-        as_t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
-        groups.append(Group(k, first, n_seg, as_t(np.linspace(0.0, seg, n_steps + 1)),
-                            as_t(np.clip(pos, 0.0, seg)), as_t(obs), torch.as_tensor(mask),
+        as_t = lambda a, on="cpu": torch.as_tensor(a, dtype=torch.float64, device=on)  # noqa: E731
+        groups.append(Group(k, first, n_seg, as_t(np.linspace(0.0, seg, n_steps + 1), device),
+                            as_t(np.clip(pos, 0.0, seg), device), as_t(obs),
+                            torch.as_tensor(mask),
                             index, t[0] + seg * np.arange(n_seg)))
         first += n_seg
     return groups
@@ -84,7 +86,6 @@ class Integrator:
         self.rows, self.cols = (torch.as_tensor(a, device=self.device)
                                 for a in np.nonzero(system.free))
         self.bound = bound
-        self._on_device = {}  # id(group) -> (group, grid, positions on the device)
 
     def _check(self, y):
         top = float(y.abs().max())  # NaN fails the comparison too
@@ -113,15 +114,6 @@ class Integrator:
 
         return func
 
-    def _placed(self, group):
-        if self.device.type == "cpu":
-            return group.grid, group.positions
-        key = id(group)
-        if key not in self._on_device:
-            self._on_device[key] = (group, group.grid.to(self.device),
-                                    group.positions.to(self.device))
-        return self._on_device[key][1:]
-
     @torch.no_grad()
     def run(self, coef, starts, group: Group, sensitivities=True):
         """States (and sensitivities) at the group's sample times and at segment ends.
@@ -140,11 +132,11 @@ class Integrator:
             func = self._field(coef)
         else:
             z0, func = y0, self._plain(coef)
-        grid, positions = self._placed(group)
-        z = rk4(func, z0, grid)  # (G, K, ...) on the grid
+        z = rk4(func, z0, group.grid)  # (G, K, ...) on the grid
         dz = func(None, z)
         z, dz = z.transpose(0, 1), dz.transpose(0, 1)  # (K, G, ...)
-        values = _hermite(z, dz, grid, positions).cpu()  # the caller's algebra is on the CPU
+        # the caller's algebra (normal equations, residuals) is on the CPU
+        values = _hermite(z, dz, group.grid, group.positions).cpu()
         ends = z[:, -1].cpu()
         if sensitivities:
             return (values[..., 0], values[..., 1:]), (ends[..., 0], ends[..., 1:])
