@@ -131,6 +131,8 @@ class FeatureMap:
         else:
             self.n_features = self.exponents.shape[0]
             self.degree = int(self.exponents.max(initial=0))
+            self.basis, self.values_table, self.gradients_table = _monomial_tables(
+                self.exponents)
 
     def __call__(self, y: torch.Tensor, gradients: bool = True):
         """``phi`` (..., F) and, if asked, ``dphi`` (..., F, n)."""
@@ -164,6 +166,26 @@ class FeatureMap:
                                 torch.eye(self.n_states, dtype=torch.bool, device=y.device))
         return self._cache[key]
 
+    def monomials(self, y: torch.Tensor) -> torch.Tensor:
+        """The monomials (..., M) of ``basis`` at ``y`` (polynomial features only): the
+        features are ``monomials @ values_table`` and their gradients
+        ``monomials @ gradients_table``, so a field that is linear in its coefficients
+        and its Jacobian come from one matrix product."""
+        powers = [torch.ones_like(y)]
+        for _ in range(self.degree):
+            powers.append(powers[-1] * y)
+        powers = torch.stack(powers, dim=-1).flatten(-2)  # (..., n * (D + 1))
+        flat = self._flat_index(y)
+        picked = powers.index_select(-1, flat)
+        return picked.unflatten(-1, (len(self.basis), self.n_states)).prod(dim=-1)
+
+    def _flat_index(self, y):
+        key = ("flat", y.device)
+        if key not in self._cache:
+            flat = self.basis + (self.degree + 1) * np.arange(self.n_states)
+            self._cache[key] = torch.as_tensor(flat.ravel(), device=y.device)
+        return self._cache[key]
+
     def _lambdified(self, y, gradients):
         cols = torch.unbind(y, dim=-1)
         shape = y.shape[:-1]
@@ -179,6 +201,38 @@ def _full(value, shape, like):
     if torch.is_tensor(value):
         return value.expand(shape)
     return torch.full(shape, float(value), dtype=like.dtype, device=like.device)
+
+
+def _monomial_tables(exponents):
+    """The monomials that the features and their gradients are made of, as an exponent
+    matrix (M, n), and the tables (M, F) and (M, F, n) that combine them into the
+    features and their gradients (a gradient of a monomial is an integer times a
+    monomial of lower degree)."""
+    n_features, n_states = exponents.shape
+    basis, where = [], {}
+
+    def index(e):
+        e = tuple(int(v) for v in e)
+        if e not in where:
+            where[e] = len(basis)
+            basis.append(e)
+        return where[e]
+
+    entries = [(index(e), f) for f, e in enumerate(exponents)]
+    grads = []
+    for f, e in enumerate(exponents):
+        for s in range(n_states):
+            if e[s] > 0:
+                lower = np.array(e)
+                lower[s] -= 1
+                grads.append((index(lower), f, s, float(e[s])))
+    values = np.zeros((len(basis), n_features))
+    for m, f in entries:
+        values[m, f] = 1.0
+    gradients = np.zeros((len(basis), n_features, n_states))
+    for m, f, s, c in grads:
+        gradients[m, f, s] = c
+    return np.array(basis, dtype=np.int64).reshape(-1, n_states), values, gradients
 
 
 def _exponents(features, symbols):

@@ -34,6 +34,11 @@ NESTED_PARENTS = 2  # single-hidden-state trials (best misfit first) nested stat
 # the noise level is floored (0.1% of each state's std), scores are tiny and their
 # differences are the integrator's, not the data's; the smallest such system wins.
 TIE = 0.05
+# A first fit whose misfit after its first pass is this many times the best so far gets
+# no enforcing pass: rejection needs only twice the best, and the enforcing pass only
+# tightens continuity (on Lorenz such fits sat at 600-5000 times the best after 40
+# iterations and spent as many again there).
+HOPELESS = 50.0
 
 
 @dataclass(frozen=True)
@@ -127,14 +132,16 @@ class _Trial:
     initial_misfit: float
 
 
-def _first_fit(p: Proposal, ctx: Context, options) -> _Trial | None:
+def _first_fit(p: Proposal, ctx: Context, options, best=np.inf) -> _Trial | None:
+    """``p`` refined; ``best`` is the lowest misfit reached so far: a fit whose first
+    pass ends ``HOPELESS`` times above it gets no enforcing pass (it is rejected)."""
     system, candidates, guesses = nested_system(p, ctx, build) if p.nested else build(p, ctx)
     try:
         with stage("refinement"):
             problem = Problem(system, ctx.times, ctx.observed, guesses, options)
             initial = problem.equations(system, problem.initial_starts,
                                         np.ones(problem.n_segments), 1.0, jacobian=False)
-            fit = problem.fit(system)
+            fit = problem.fit(system, give_up=HOPELESS * max(best, 1.0))
     except BlowUp:
         return None  # the proposal's system cannot even be integrated from its guesses
     return _Trial(p, problem, fit, candidates, float(np.sqrt(initial.data_cost /
@@ -173,24 +180,28 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     the best single-hidden-state proposals with a hidden state inside the hidden
     equation (:mod:`.nested`). Returns ``rank``'s result."""
     options = options or RefineOptions()
-    trials = [t for t in (_first_fit(p, ctx, options) for p in proposals) if t is not None]
+    trials = []
+
+    def refined(p):
+        best = min((t.fit.residual_variance for t in trials), default=np.inf)
+        t = _first_fit(p, ctx, options, best)
+        if t is not None:
+            trials.append(t)
+
+    for p in proposals:
+        refined(p)
     best = min((t.fit.residual_variance for t in trials), default=np.inf)
     if best > RATE_TRIGGER and max_hidden >= 2:
         singles = [p for p in proposals if p.structure.n_hidden == 1 and p.order == 1]
         for p in singles[:2]:
-            t = _first_fit(close(p.structure, p.fit, ctx, p.origin + ", with its rate", 2),
-                           ctx, options)
-            if t is not None:
-                trials.append(t)
+            refined(close(p.structure, p.fit, ctx, p.origin + ", with its rate", 2))
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
     if nested and best > RATE_TRIGGER and max_hidden >= 2:
         parents = sorted((t for t in trials if t.proposal.n_states == 1),
                          key=lambda t: t.fit.residual_variance)[:NESTED_PARENTS]
         for parent in parents:
             for p in nested_proposals(parent.proposal, ctx):
-                t = _first_fit(p, ctx, options)
-                if t is not None:
-                    trials.append(t)
+                refined(p)
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
     verdicts = []
     for t in trials:

@@ -93,6 +93,8 @@ class Integrator:
             raise BlowUp()
 
     def _field(self, coef):
+        if self.features.exponents is not None:
+            return self._polynomial_field(coef)
         n = len(self.system.state_names)
         rows, cols = self.rows, n + torch.arange(len(self.rows))
         take = self.cols
@@ -107,7 +109,45 @@ class Integrator:
 
         return func
 
+    def _polynomial_field(self, coef):
+        """The field, its Jacobian and its derivatives by the free coefficients from one
+        product of the monomials with a table made for ``coef``: the sensitivity
+        equations' right-hand side ``(f, J S + df/dcoef)`` in a handful of tensor
+        operations (the refinement evaluates it millions of times on small batches,
+        where each operation's overhead costs more than its arithmetic). The same
+        arithmetic as the feature map's path: the tables hold only 0/1 and exponents."""
+        fm, n = self.features, len(self.system.state_names)
+        like = dict(dtype=coef.dtype, device=coef.device)
+        values = torch.as_tensor(fm.values_table, **like)  # (M, F)
+        grads = torch.as_tensor(fm.gradients_table, **like)  # (M, F, n)
+        n_free = len(self.rows)
+        extra = torch.zeros(values.shape[0], n, n + n_free, **like)
+        extra[:, self.rows, n + torch.arange(n_free, device=coef.device)] = values[:, self.cols]
+        table = torch.cat([values @ coef.T, torch.einsum("mfs,if->mis", grads, coef).flatten(1),
+                           extra.flatten(1)], dim=1)
+        split = (n, n * n, n * (n + n_free))
+
+        def func(t, z):
+            y = z[..., 0]
+            self._check(y)
+            f, jac, extra = (fm.monomials(y) @ table).split(split, dim=-1)
+            sens = torch.matmul(jac.unflatten(-1, (n, n)), z[..., 1:])
+            sens += extra.unflatten(-1, (n, n + n_free))
+            return torch.cat([f[..., None], sens], dim=-1)
+
+        return func
+
     def _plain(self, coef):
+        if self.features.exponents is not None:
+            table = torch.as_tensor(self.features.values_table, dtype=coef.dtype,
+                                    device=coef.device) @ coef.T
+
+            def polynomial(t, y):
+                self._check(y)
+                return self.features.monomials(y) @ table
+
+            return polynomial
+
         def func(t, y):
             self._check(y)
             return self.features(y, gradients=False)[0] @ coef.T
