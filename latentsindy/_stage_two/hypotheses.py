@@ -204,7 +204,13 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
     # be refitted back (the judge's term selection then prunes what is not needed)
     if not fuller:
         return chosen
-    extra = {id(p): q for p in first if (q := fuller_closure(p)) is not None}
+    # (one per system: two always-judged proposals with the same structure, such as
+    # stage one's and the best carrier's, give the same fuller closure)
+    extra = {}
+    for p in first:
+        q = fuller_closure(p)
+        if q is not None:
+            extra.setdefault((q.structure.key(), q.order, q.closure.coef.tobytes()), q)
     return chosen + list(extra.values())
 
 

@@ -1,0 +1,92 @@
+"""How long one ``discover_hidden`` call takes, next to plain pysindy on the same data.
+
+For each family and draw (``benchmarks/_families.py``, default settings, 1% noise) one
+``discover_hidden`` call runs alone in this process (no other job beside it), then 20
+pysindy SINDy fits (STLSQ, polynomials of degree 3) of the same system with every state
+observed (the clean states plus 1% noise) are timed in the same run: the ratio says what
+discovery costs in units of the plain regression a user would run if nothing were
+hidden. Prints a row per call and the medians per family, and the stages' median split
+(``result.timings``).
+
+Usage::
+
+    python benchmarks/speed.py                       # prey-only LV, 5 draws
+    python benchmarks/speed.py --families lorenz_z modulated lorenz_x --draws 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pysindy as ps
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from _families import FAMILIES, draw  # noqa: E402
+
+from latentsindy import discover_hidden  # noqa: E402
+
+PYSINDY_FITS = 20
+
+
+def pysindy_seconds(d, noise, seed=0):
+    """Wall seconds of ``PYSINDY_FITS`` SINDy fits with every state observed."""
+    full = np.hstack([d.observed_clean, d.hidden_true])
+    rng = np.random.default_rng(seed)
+    noisy = full + noise * full.std(axis=0) * rng.standard_normal(full.shape)
+    start = time.perf_counter()
+    for _ in range(PYSINDY_FITS):
+        ps.SINDy(optimizer=ps.STLSQ(), feature_library=ps.PolynomialLibrary(degree=3)).fit(
+            noisy, t=d.t)
+    return time.perf_counter() - start
+
+
+def one(family, index, noise):
+    d = draw(family, index, noise)
+    start = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = discover_hidden(d.observed, FAMILIES[family].library(), t=d.t,
+                                 feature_names=list(d.observed_names), verbose=False)
+    wall = time.perf_counter() - start
+    fits = pysindy_seconds(d, noise)
+    return {"family": family, "draw": index, "wall": wall, "pysindy": fits,
+            "ratio": wall / fits, "timings": dict(result.timings),
+            "confident": result.confident}
+
+
+def main(families, draws, noise):
+    rows = []
+    for family in families:
+        for index in range(draws):
+            row = one(family, index, noise)
+            rows.append(row)
+            print(f"{family:20s} draw {index}: {row['wall']:6.1f} s, {PYSINDY_FITS} pysindy "
+                  f"fits {row['pysindy']:.3f} s, ratio {row['ratio']:.0f}", flush=True)
+    print(f"\n| family | calls | median wall (s) | worst (s) | median {PYSINDY_FITS} pysindy "
+          "fits (s) | median ratio | median split (s) |\n|---|---|---|---|---|---|---|")
+    for family in families:
+        rs = [r for r in rows if r["family"] == family]
+        stages = sorted({k for r in rs for k in r["timings"]})
+        split = {k: float(np.median([r["timings"].get(k, 0.0) for r in rs])) for k in stages}
+        text = ", ".join(f"{k} {v:.1f}" for k, v in sorted(split.items(), key=lambda kv: -kv[1])
+                         if v >= 0.1)
+        print(f"| {family} | {len(rs)} | {np.median([r['wall'] for r in rs]):.1f} | "
+              f"{max(r['wall'] for r in rs):.1f} | {np.median([r['pysindy'] for r in rs]):.3f} | "
+              f"{np.median([r['ratio'] for r in rs]):.0f} | {text} |")
+    return rows
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--families", nargs="+", choices=list(FAMILIES),
+                        default=["lotka_volterra"])
+    parser.add_argument("--draws", type=int, default=5)
+    parser.add_argument("--noise", type=float, default=0.01)
+    args = parser.parse_args()
+    main(args.families, args.draws, args.noise)
