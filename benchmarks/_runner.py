@@ -11,8 +11,13 @@ from pathlib import Path
 
 def _single_threaded():
     import torch
+    from threadpoolctl import threadpool_limits
 
     torch.set_num_threads(1)
+    # the BLAS too: the parent imported numpy before OMP_NUM_THREADS was set, so each
+    # forked worker would run two BLAS threads on its one core (stage two's timings
+    # were 2-9x a lone call's, and varied from run to run)
+    threadpool_limits(1)
 
 
 def _call(run, task):

@@ -27,3 +27,19 @@ def test_rows_are_written_as_they_finish(tmp_path):
         run_all(crash_on_third, [(0,), (1,), (2,)], report, jobs=1, out=out)
     assert on_disk == [None, [{"case": 0, "value": 0.0}]]
     assert json.loads(out.read_text()) == [{"case": 0, "value": 0.0}, {"case": 1, "value": 0.25}]
+
+
+def _threads(_):
+    import torch
+    from threadpoolctl import threadpool_info
+
+    return {"torch": torch.get_num_threads(),
+            "blas": [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]}
+
+
+def test_worker_processes_run_torch_and_the_blas_on_one_thread():
+    """Workers of ``jobs > 1`` use one thread for torch and for the BLAS (numpy is
+    imported before the workers fork: an environment variable set then comes too late,
+    and two BLAS threads per worker oversubscribed the cores)."""
+    rows = run_all(_threads, [(0,), (1,)], lambda row: None, jobs=2)
+    assert all(r["torch"] == 1 and r["blas"] and set(r["blas"]) == {1} for r in rows)

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sps
 import torch
+from threadpoolctl import threadpool_limits
 
 from .._core.derivatives import noise_level
 from .._core.timing import timed
@@ -44,11 +45,12 @@ _PENALTY = (1e2, 1e4)  # continuity weight: first pass, then the enforcing pass
 # the data is a break in the trajectory, not a gap left by the penalty (segments that
 # join leave jumps below 1e-3 of it; shrunk piecewise-constant states jump by 0.5-2x it).
 JOIN = 0.05
-# A fit stops once a step would lower the misfit (in noise variances) by less than
-# this: the coefficients are then within about 0.2 standard errors of the minimum
-# (a change of 1 in the misfit is one standard error), while every decision made on
-# the misfit (term prices ~10, ambiguity 4) is forty times coarser. Not for held-out
-# folds (cross_validate), whose misfit does not contain the data that is scored.
+# A fit stops once the Gauss-Newton model's remaining decrease of the misfit (noise
+# variances) is below this. That decrease is the squared distance to the model's
+# minimum in standard errors, jointly over all coefficients and starts: the fit stops
+# within 0.22 of them, while every decision made on the misfit (term prices ~10,
+# ambiguity 4) is forty times coarser. Not for held-out folds (cross_validate), whose
+# misfit does not contain the data that is scored.
 RESOLUTION = 0.05
 
 
@@ -109,12 +111,14 @@ class Fit:
 
 @contextlib.contextmanager
 def single_thread():
-    """Run torch on one thread inside the block: the refinement's tensors are small,
-    and on them intra-op threading costs more than it gains (2.5x slower on 2 cores)."""
+    """Run torch and the BLAS on one thread inside the block: the refinement's tensors
+    and normal equations are small, and on them threading costs more than it gains
+    (torch 2.5x slower on 2 cores; the BLAS 10-15% of stage two on Lorenz)."""
     previous = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        yield
+        with threadpool_limits(1):
+            yield
     finally:
         torch.set_num_threads(previous)
 
@@ -370,10 +374,10 @@ def _levenberg_marquardt(problem, system, values, starts, weights, rho, max_iter
                          tolerance=1e-6, resolution=RESOLUTION, give_up=np.inf):
     """Marquardt-scaled Levenberg-Marquardt; every trial point is integrated with its
     sensitivities, so an accepted step needs no second integration. Stops when a step
-    lowers the cost by less than ``tolerance`` (relative) or ``resolution`` (absolute,
-    in noise variances), when the next step's predicted decrease (Gauss-Newton model)
-    is below ``resolution`` (so no integration is spent on it), when no step lowers
-    the cost, or when the data misfit is above ``give_up`` after half the iterations."""
+    lowers the cost by less than ``tolerance`` (relative), when the Gauss-Newton
+    model's remaining decrease is below ``resolution`` (noise variances; no
+    integration is spent on it), when no step lowers the cost, or when the data misfit
+    is above ``give_up`` after half the iterations."""
     n_free = system.n_free
     eq = problem.equations(system.with_free(values), starts, weights, rho)
     mu, converged, iterations, accepted = 1e-3, False, 0, True
@@ -382,11 +386,17 @@ def _levenberg_marquardt(problem, system, values, starts, weights, rho, max_iter
         diag = a.diagonal()
         damp = mu * np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
         step = solve(a + _diag(damp), -eq.grad)
-        # at a point just reached (light damping: nearly the Gauss-Newton step), a model
-        # decrease below the resolution ends the fit without integrating the step
-        if accepted and -(2 * eq.grad @ step + step @ (a @ step)) < resolution:
-            converged = True
-            break
+        # at a point just reached, the undamped Gauss-Newton model's whole remaining
+        # decrease (g' A^-1 g) below the resolution ends the fit without integrating
+        # another step (the damped step's decrease would understate it in a long valley
+        # of correlated coefficients, and stop there far from the minimum)
+        if accepted and resolution > 0:
+            newton = solve(a + _diag(1e-10 * np.maximum(diag, 1e-12 * max(diag.max(),
+                                                                          1e-300))),
+                           -eq.grad)
+            if -(eq.grad @ newton) < resolution:
+                converged = True
+                break
         if iterations >= max_iterations // 2 and eq.data_cost > give_up:
             break
         iterations += 1
@@ -402,7 +412,7 @@ def _levenberg_marquardt(problem, system, values, starts, weights, rho, max_iter
             decrease = eq.cost - trial.cost
             values, starts, eq = trial_values, trial_starts, trial
             mu, accepted = max(mu / 3.0, 1e-9), True
-            if decrease < max(tolerance * eq.cost, resolution):
+            if decrease < tolerance * eq.cost:
                 converged = True
                 break
         else:

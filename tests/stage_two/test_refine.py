@@ -104,6 +104,22 @@ def test_polynomial_field_matches_the_general_path():
             torch.testing.assert_close(u, v, rtol=1e-12, atol=1e-10)
 
 
+def test_single_thread_covers_torch_and_the_blas():
+    """Stage two's small algebra runs on one thread, torch's and the BLAS's, and both
+    are restored afterwards."""
+    from threadpoolctl import threadpool_info
+
+    from latentsindy._stage_two.refine import single_thread
+
+    def blas():
+        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+    before, torch_before = blas(), torch.get_num_threads()
+    with single_thread():
+        assert torch.get_num_threads() == 1 and set(blas()) == {1}
+    assert blas() == before and torch.get_num_threads() == torch_before
+
+
 def test_stopping_at_the_resolution_stays_within_a_fraction_of_a_standard_error():
     """The fit stops once the next step would gain less than ``RESOLUTION`` noise
     variances: on prey-only LV at 1% noise its coefficients agree with a fit run to the
