@@ -138,32 +138,21 @@ class FeatureMap:
         """``phi`` (..., F) and, if asked, ``dphi`` (..., F, n)."""
         if self.exponents is None:
             return self._lambdified(y, gradients)
-        e_t, lower_t, e_float, eye = self._constants(y)
-        # powers[..., s, d] = y_s ** d for d = 0..degree
-        powers = [torch.ones_like(y)]
-        for _ in range(self.degree):
-            powers.append(powers[-1] * y)
-        powers = torch.stack(powers, dim=-1)  # (..., n, D + 1)
-        idx = e_t.expand(*y.shape[:-1], *e_t.shape)  # (..., n, F)
-        factors = torch.gather(powers, -1, idx).transpose(-1, -2)  # (..., F, n)
-        phi = factors.prod(dim=-1)
+        mono = self.monomials(y)
+        values, grads = self.tables(y)
+        phi = mono @ values
         if not gradients:
             return phi, None
-        lower = torch.gather(powers, -1, lower_t.expand(*y.shape[:-1], *lower_t.shape))
-        deriv = e_float * lower.transpose(-1, -2)  # d factor_s / d y_s, (..., F, n)
-        # product over s' of factors, with factor s replaced by its derivative
-        stacked = torch.where(eye, deriv[..., None, :], factors[..., None, :])
-        dphi = stacked.prod(dim=-1)  # (..., F, n)
-        return phi, dphi
+        return phi, (mono @ grads).unflatten(-1, (self.n_features, self.n_states))
 
-    def _constants(self, y):
-        """Exponent tables on ``y``'s device and dtype (made once per device and dtype:
-        the refinement calls this map thousands of times on small batches)."""
-        key = (y.device, y.dtype)
+    def tables(self, like: torch.Tensor):
+        """``values_table`` (M, F) and ``gradients_table`` flattened to (M, F * n) on
+        ``like``'s device and dtype (made once per device and dtype)."""
+        key = (like.device, like.dtype)
         if key not in self._cache:
-            e = torch.as_tensor(self.exponents, device=y.device)
-            self._cache[key] = (e.T, (e.T - 1).clamp_min(0), e.to(y.dtype),
-                                torch.eye(self.n_states, dtype=torch.bool, device=y.device))
+            on = dict(dtype=like.dtype, device=like.device)
+            self._cache[key] = (torch.as_tensor(self.values_table, **on),
+                                torch.as_tensor(self.gradients_table, **on).flatten(1))
         return self._cache[key]
 
     def monomials(self, y: torch.Tensor) -> torch.Tensor:

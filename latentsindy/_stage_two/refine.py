@@ -224,15 +224,15 @@ class Problem:
         max_iterations = max_iterations or self.options.max_iterations
         values = system.free_values()
         total = 0
-        n_params = system.n_free + starts.size
+        dof = max(self.n_data - system.n_free - starts.size, 1)
         for rho in penalties:
             values, starts, eq, its, ok = _levenberg_marquardt(
                 self, system, values, starts, weights, rho, max_iterations,
-                resolution=resolution, give_up=give_up * max(self.n_data - n_params, 1))
+                resolution=resolution, give_up=give_up * dof)
             total += its
             status = "converged" if ok else "iteration_limit"  # of the last pass
             if (self._gap(system.with_free(values), starts) < _GAP
-                    or eq.data_cost / max(self.n_data - n_params, 1) > give_up):
+                    or eq.data_cost > give_up * dof):
                 break
         fitted = system.with_free(values)
         return Fit(fitted, starts, eq.cost, eq.data_cost, self.n_data, self._gap(fitted, starts),
@@ -384,21 +384,18 @@ def _levenberg_marquardt(problem, system, values, starts, weights, rho, max_iter
     while iterations < max_iterations:
         a = eq.matrix()
         diag = a.diagonal()
-        damp = mu * np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
-        step = solve(a + _diag(damp), -eq.grad)
+        scale = np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
         # at a point just reached, the undamped Gauss-Newton model's whole remaining
         # decrease (g' A^-1 g) below the resolution ends the fit without integrating
         # another step (the damped step's decrease would understate it in a long valley
         # of correlated coefficients, and stop there far from the minimum)
         if accepted and resolution > 0:
-            newton = solve(a + _diag(1e-10 * np.maximum(diag, 1e-12 * max(diag.max(),
-                                                                          1e-300))),
-                           -eq.grad)
-            if -(eq.grad @ newton) < resolution:
+            if -(eq.grad @ solve(a + _diag(1e-10 * scale), -eq.grad)) < resolution:
                 converged = True
                 break
         if iterations >= max_iterations // 2 and eq.data_cost > give_up:
             break
+        step = solve(a + _diag(mu * scale), -eq.grad)
         iterations += 1
         trial_values = values + step[:n_free]
         trial_starts = starts + step[n_free:].reshape(starts.shape)

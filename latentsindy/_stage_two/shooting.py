@@ -117,11 +117,11 @@ class Integrator:
         where each operation's overhead costs more than its arithmetic). The same
         arithmetic as the feature map's path: the tables hold only 0/1 and exponents."""
         fm, n = self.features, len(self.system.state_names)
-        like = dict(dtype=coef.dtype, device=coef.device)
-        values = torch.as_tensor(fm.values_table, **like)  # (M, F)
-        grads = torch.as_tensor(fm.gradients_table, **like)  # (M, F, n)
+        values, grads = fm.tables(coef)  # (M, F), (M, F * n)
+        grads = grads.unflatten(1, (fm.n_features, n))
         n_free = len(self.rows)
-        extra = torch.zeros(values.shape[0], n, n + n_free, **like)
+        extra = torch.zeros(values.shape[0], n, n + n_free, dtype=coef.dtype,
+                            device=coef.device)
         extra[:, self.rows, n + torch.arange(n_free, device=coef.device)] = values[:, self.cols]
         table = torch.cat([values @ coef.T, torch.einsum("mfs,if->mis", grads, coef).flatten(1),
                            extra.flatten(1)], dim=1)
@@ -139,8 +139,7 @@ class Integrator:
 
     def _plain(self, coef):
         if self.features.exponents is not None:
-            table = torch.as_tensor(self.features.values_table, dtype=coef.dtype,
-                                    device=coef.device) @ coef.T
+            table = self.features.tables(coef)[0] @ coef.T
 
             def polynomial(t, y):
                 self._check(y)
