@@ -16,7 +16,13 @@ Sources of proposals:
 * for every equation whose coefficients vary, each library term as the one carrier of
   the variation (stage one may make the wrong term vary, or prune a real constant term
   whose role the variation took over); constant terms are then added or dropped one at
-  a time while that improves the closure.
+  a time while that improves the closure;
+* stage one's carrier of each varying equation with every library term of that
+  equation back as a constant, the small ones pruned by the smoother (
+  :func:`with_every_constant`): stage one's varying coefficient can take in several
+  state-dependent terms at once (a hidden drive's coefficient taking in a damped
+  oscillator's restoring and friction terms), which adding one constant at a time
+  cannot undo, since no single one of them makes the rest close.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ import sympy as sp
 from .._core.derivatives import AdaptiveSavitzkyGolay
 from .._core.timing import timed
 from .closure import ClosureFit, fit_closure, fit_rate_closure
-from .smoother import HiddenFit, Structure, fit_hidden, single_term
+from .smoother import HiddenFit, Structure, fit_hidden, prune_constants, single_term
 
 MAX_RANK = 3  # at most this many hidden states from shared variation
 KEEP = 3  # proposals passed on to the judge besides the ones always judged
@@ -156,6 +162,12 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
         return reduced[key]
 
     equations = sorted({i for i, _ in varying_pairs})
+    for i in equations:
+        k = next(k for j, k in varying_pairs if j == i)
+        p = with_every_constant(ctx, support, i, k)
+        if p is not None:
+            add(p)
+            first.append(p)
     best_carrier = {}
     for i in equations:
         if not ctx.free_rows[i]:
@@ -212,6 +224,29 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
         if q is not None:
             extra.setdefault((q.structure.key(), q.order, q.closure.coef.tobytes()), q)
     return chosen + list(extra.values())
+
+
+def with_every_constant(ctx: Context, support, equation: int, carrier: int) -> Proposal | None:
+    """One hidden state, the coefficient of ``carrier`` in ``equation``, with every
+    other library term of that equation as a constant; the terms explaining less than
+    the threshold of the equation's rate pruned (STLSQ with the smoother inside). The
+    smoother's roughness penalty decides what is state-dependent (a constant times a
+    library term) and what is the hidden state's own, slower variation. None for a fixed
+    equation or when the fit fails."""
+    if not ctx.free_rows[equation]:
+        return None
+    sup = np.array(support, dtype=bool, copy=True)
+    sup[equation, :] = True
+    structure = single_term(*sup.shape, equation, carrier, sup)
+    try:
+        fit = fit_hidden(structure, ctx.thetas, ctx.observed, ctx.times, ctx.sigma,
+                         ctx.spacing)
+        fit = prune_constants(fit, ctx.thetas, ctx.observed, ctx.times, ctx.sigma,
+                              ctx.spacing, ctx.threshold, ctx.free_rows)
+        p = close(fit.structure, fit, ctx, "carrier with every term, pruned")
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    return p if np.isfinite(p.score) and np.isfinite(p.fit.misfit) else None
 
 
 def fuller_closure(p: Proposal) -> Proposal | None:

@@ -192,9 +192,8 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
         refined(p)
     best = min((t.fit.residual_variance for t in trials), default=np.inf)
     if best > RATE_TRIGGER and max_hidden >= 2:
-        singles = [p for p in proposals if p.structure.n_hidden == 1 and p.order == 1]
-        for p in singles[:2]:
-            refined(close(p.structure, p.fit, ctx, p.origin + ", with its rate", 2))
+        for p in _rate_candidates(proposals, ctx):
+            refined(p)
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
     if nested and best > RATE_TRIGGER and max_hidden >= 2:
         parents = sorted((t for t in trials if t.proposal.n_states == 1),
@@ -217,6 +216,18 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
         if restated is not None:
             return rank(verdicts + [restated])
     return ordered, uncertain
+
+
+def _rate_candidates(proposals, ctx: Context, keep: int = 2) -> list:
+    """Single-hidden-state proposals with the hidden state's rate as a second state: the
+    first ``keep`` in the proposals' order (best first-order closure) and the ``keep``
+    whose rate closes best (a periodic drive's first-order law does not close at all,
+    so its first-order rank says nothing about its second-order one)."""
+    singles = [p for p in proposals if p.structure.n_hidden == 1 and p.order == 1]
+    rated = [close(p.structure, p.fit, ctx, p.origin + ", with its rate", 2) for p in singles]
+    best = sorted(range(len(rated)), key=lambda a: rated[a].score)[:keep]
+    chosen = sorted(set(range(min(keep, len(rated)))) | set(best))
+    return [rated[a] for a in chosen]
 
 
 def _shifted(verdict: Verdict, ctx: Context, options) -> Verdict | None:

@@ -23,7 +23,7 @@ def _discover(family, index, noise):
 
 
 @pytest.mark.parametrize("family", ["fitzhugh_nagumo", "lorenz_z", "modulated",
-                                    "oscillator_sinusoid"])
+                                    "oscillator_sinusoid", "driven_oscillator"])
 def test_family_at_one_percent_noise(family):
     """Issue 9 bars, one draw each: the right number of hidden states, exact structure
     (no extra or missing term in any equation), hidden R^2 >= 0.98, hidden-equation
