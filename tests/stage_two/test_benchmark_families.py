@@ -39,6 +39,19 @@ def test_family_at_one_percent_noise(family):
     assert s["error"] <= 0.02
 
 
+def test_one_epidemic_wave_at_five_percent_noise():
+    """Issue 20: one SIR wave, only the infected observed, 5% noise. The smoother's
+    hidden series for the true carrier (h = (dI/dt) / I) is too rough to close, and
+    ``dI/dt = h`` with a four-term law fitted the wave alone (wrong yet confident); the
+    winner restated as the coefficient of I from its own trajectories gives the exact
+    law, which wins as the smaller system: exact structure, R^2 >= 0.98, coefficients
+    within 5%."""
+    _, s = _discover("epidemic", 0, 0.05)
+    assert s["exact"], s
+    assert s["r2"] >= 0.98
+    assert s["error"] <= 0.05
+
+
 def test_ten_percent_noise_finishes_and_reports():
     """10% noise: no crash, no hang; a closed system with scores and alternatives."""
     result, s = _discover("lotka_volterra", 1, 0.1)
