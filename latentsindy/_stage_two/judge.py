@@ -43,12 +43,6 @@ HOPELESS = 50.0
 # A winner's hidden state is restated as the coefficient of another term only where that
 # term stays above this fraction of its RMS value on the winner's trajectories.
 REGAUGE_FLOOR = 0.02
-# ... and only where the restated state's law closes about as well as the chosen one's on
-# the same trajectories (within this factor of its closure error, or of the closure's
-# resolution on smooth trajectories): then the restated law is another exact description
-# (one epidemic wave: 2.1x), not an approximation of it (other families: 19x to 10^6x).
-REGAUGE_CLOSES = 5.0
-REGAUGE_RESOLUTION = 1e-4
 
 
 @dataclass(frozen=True)
@@ -271,9 +265,10 @@ def _regauged(verdict: Verdict, ctx: Context, options) -> Verdict | None:
     a wrong closure and rejected, while ``dI/dt = h`` with a four-term law for h fits one
     wave to the noise and wins alone. The fitted system's trajectories are smooth and
     its rate exact, so ``h' = rate / theta`` (the new carrier ``theta``) is a clean series:
-    its closure is fitted, and the carrier whose series closes best, if its law closes
-    about as well as the chosen one's own, is refined and scored; ranking decides (the
-    smaller system within the band wins; an equal one makes the result uncertain)."""
+    its closure is fitted, and the carrier whose series closes best is refined (stopped
+    early when hopeless) and, within twice the chosen one's misfit, its terms selected
+    and scored; ranking decides (the smaller system within the band wins; an equal one
+    makes the result uncertain)."""
     p = verdict.proposal
     if p.order != 1 or p.nested or p.structure.n_hidden != 1:
         return None
@@ -289,14 +284,6 @@ def _regauged(verdict: Verdict, ctx: Context, options) -> Verdict | None:
     rates = [np.broadcast_to(rate(*tr.T), (len(tr),)) for tr in trajectories]
     others = p.structure.support.copy()
     others[i] = False
-    own = HiddenFit(p.structure, p.fit.constants,
-                    [tr[:, n_obs:n_obs + 1] for tr in trajectories],
-                    verdict.fit.residual_variance, 0.0)
-    try:  # the chosen law's closure error on its own trajectories: an exact law's score
-        bar = REGAUGE_CLOSES * max(close(p.structure, own, ctx, "own").score,
-                                   REGAUGE_RESOLUTION)
-    except (np.linalg.LinAlgError, ValueError):
-        return None
     best = None
     for j, expr in enumerate(ctx.feature_exprs):
         if j == k:
@@ -315,12 +302,15 @@ def _regauged(verdict: Verdict, ctx: Context, options) -> Verdict | None:
             q = close(structure, fit, ctx, p.origin + f", restated as the coefficient of {expr}")
         except (np.linalg.LinAlgError, ValueError):
             continue
-        if q.score <= bar and (best is None or q.score < best.score):
+        if np.isfinite(q.score) and (best is None or q.score < best.score):
             best = q
     if best is None:
         return None
-    trial = _first_fit(best, ctx, options)
-    return None if trial is None else _finish(trial)
+    misfit = verdict.fit.residual_variance
+    trial = _first_fit(best, ctx, options, misfit)
+    if trial is None or trial.fit.residual_variance > 2.0 * max(misfit, 1.0):
+        return None  # judged as the proposals are: beyond twice the best, not scored
+    return _finish(trial)
 
 
 def _integrated(verdict: Verdict, options) -> Verdict | None:
