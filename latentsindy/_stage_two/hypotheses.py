@@ -237,13 +237,20 @@ def with_every_constant(ctx: Context, support, equation: int, carrier: int) -> P
         return None
     sup = np.array(support, dtype=bool, copy=True)
     sup[equation, :] = True
-    structure = single_term(*sup.shape, equation, carrier, sup)
+    return pruned(single_term(*sup.shape, equation, carrier, sup), ctx,
+                  "carrier with every term, pruned")
+
+
+def pruned(structure, ctx: Context, origin: str) -> Proposal | None:
+    """``structure`` fitted by the smoother, its constant terms that explain less than
+    the threshold of their equation's rate pruned (STLSQ with the smoother inside), and
+    closed; None when a fit fails or is not finite."""
     try:
         fit = fit_hidden(structure, ctx.thetas, ctx.observed, ctx.times, ctx.sigma,
                          ctx.spacing)
         fit = prune_constants(fit, ctx.thetas, ctx.observed, ctx.times, ctx.sigma,
                               ctx.spacing, ctx.threshold, ctx.free_rows)
-        p = close(fit.structure, fit, ctx, "carrier with every term, pruned")
+        p = close(fit.structure, fit, ctx, origin)
     except (np.linalg.LinAlgError, ValueError):
         return None
     return p if np.isfinite(p.score) and np.isfinite(p.fit.misfit) else None

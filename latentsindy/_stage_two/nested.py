@@ -24,8 +24,8 @@ import sympy as sp
 from .._core.library import feature_expressions, state_symbols
 from .._core.symbolic import VectorField
 from .field import ParametricSystem
-from .hypotheses import Context, Proposal, _usable, close
-from .smoother import fit_hidden, prune_constants, single_term
+from .hypotheses import Context, Proposal, _usable, pruned
+from .smoother import single_term
 
 PARENT = "q0"  # the parent hidden state's name inside the augmented system
 KEEP = 2  # nested proposals per parent passed on to the judge
@@ -46,16 +46,9 @@ def nested_proposals(parent: Proposal, ctx: Context, keep: int = KEEP) -> list[P
         # every closure term as a constant beside the carrier, then those that explain
         # less than the threshold of the equation's rate pruned (STLSQ with the
         # smoother inside): the parent's own closure is no guide, the data refused it
-        structure = single_term(row + 1, len(aug.feature_exprs), row, k, support)
-        try:
-            fit = fit_hidden(structure, aug.thetas, aug.observed, aug.times, aug.sigma,
-                             aug.spacing)
-            fit = prune_constants(fit, aug.thetas, aug.observed, aug.times, aug.sigma,
-                                  aug.spacing, aug.threshold, aug.free_rows)
-            trial = close(fit.structure, fit, aug, "nested")
-        except (np.linalg.LinAlgError, ValueError):
-            continue
-        if np.isfinite(trial.score) and np.isfinite(trial.fit.misfit):
+        trial = pruned(single_term(row + 1, len(aug.feature_exprs), row, k, support), aug,
+                       "nested")
+        if trial is not None:
             carriers.append(trial)
     return [_as_proposal(parent, p, ctx, aug) for p in _usable(carriers)[:keep]]
 
