@@ -17,17 +17,25 @@ import sympy as sp
 
 
 def definitions(result):
-    """Each hidden state as ("coef", state, feature) or ("rate", k): the rate of hidden
-    state k."""
+    """Each hidden state as ("coef", state, feature, others) or ("rate", k): the rate of
+    hidden state k. ``others`` are the terms of the found equation ``d state/dt`` free of
+    this and later hidden states: the hidden state is the coefficient of ``feature`` in
+    that equation as found, so it carries every true term divisible by ``feature`` that
+    the found equation does not show on its own (Lorenz from x: ``dx/dt = h0`` defines
+    ``h0 = sigma (y - x)``, ``dx/dt = h0 - sigma x`` defines ``h0 = sigma y``)."""
     states = getattr(result, "hidden_states", None)
     if states is None:  # results without structured hidden states
         return [("coef", s, f) for s, f in result.hidden_terms]
     out = []
-    for h in states:
+    names = [h.name for h in states]
+    for a, h in enumerate(states):
         if h.rate_of is not None:
-            out.append(("rate", [g.name for g in states].index(h.rate_of)))
-        else:
-            out.append(("coef", *h.terms[0]))
+            out.append(("rate", names.index(h.rate_of)))
+            continue
+        state, feature = h.terms[0]
+        later = {sp.Symbol(n, real=True) for n in names[a:]}
+        others = tuple(f for f in result.equation(state) if not f.free_symbols & later)
+        out.append(("coef", state, feature, others))
     return out
 
 
@@ -78,8 +86,9 @@ def hidden_definitions(draw, defs, hidden_names):
                 return None
             phis.append(sp.expand(_rate(phis[d[1]], rhs, hidden)))
             continue
-        _, state, feature = d
+        _, state, feature, *others = d
         if state in obs:
+            variables = obs_syms
             poly = sp.Poly(sp.expand(rhs[obs[state]]), *obs_syms)
             mono = sp.Poly(_feature(feature, obs), *obs_syms).monoms()[0]
         elif state in hidden_names[:len(phis)]:
@@ -93,8 +102,25 @@ def hidden_definitions(draw, defs, hidden_names):
             mono = sp.Poly(_feature(feature, names), *variables).monoms()[0]
         else:
             return None
-        phis.append(sp.expand(poly.as_dict().get(mono, sp.Integer(0))))
+        phis.append(_coefficient(poly, mono, others[0] if others else None, variables))
     return phis
+
+
+def _coefficient(poly, mono, others, variables):
+    """The coefficient of monomial ``mono`` in ``poly``; with ``others`` (the found
+    equation's terms beside it), plus every term divisible by ``mono`` that is not one
+    of them, divided by it."""
+    terms = poly.as_dict()
+    if others is None:
+        return sp.expand(terms.get(mono, sp.Integer(0)))
+    shown = {sp.Poly(f, *variables).monoms()[0] for f in others
+             if f.free_symbols <= set(variables)}
+    out = sp.Integer(0)
+    for m, c in terms.items():
+        rest = tuple(a - b for a, b in zip(m, mono, strict=True))
+        if min(rest) >= 0 and (m == mono or m not in shown):
+            out += c * sp.Mul(*[v**e for v, e in zip(variables, rest, strict=True)])
+    return sp.expand(out)
 
 
 def _rate(phi, rhs, variables):

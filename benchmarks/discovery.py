@@ -21,7 +21,6 @@ Usage::
     python benchmarks/discovery.py --quick         # 3 draws at 1% noise
     python benchmarks/discovery.py --families lotka_volterra --draws 5 --noise 0.01 0.05
     python benchmarks/discovery.py --jobs 14       # 14 processes of one thread each
-    python benchmarks/discovery.py --families lorenz_x --nested   # experimental (issue 20)
 """
 
 from __future__ import annotations
@@ -177,10 +176,7 @@ def ratio_baseline(d):
             "wall": time.perf_counter() - start}
 
 
-def run_one(family, index, noise, verbose=False, nested=False):
-    import latentsindy._stage_two.discover as stage_two
-
-    stage_two.NESTED = nested  # experimental: nested hidden states (issue 20)
+def run_one(family, index, noise, verbose=False):
     d = draw(family, index, noise)
     row = {"family": family, "draw": index, "noise": noise, "params": d.params}
     start = time.perf_counter()
@@ -264,10 +260,9 @@ def time_split(rows):
     return "\n".join(lines)
 
 
-def main(families=None, draws=10, noise=NOISE, out=None, verbose=False, jobs=1,
-         nested=False):
+def main(families=None, draws=10, noise=NOISE, out=None, verbose=False, jobs=1):
     families = list(families or FAMILIES)
-    tasks = [(fam, k, nz, verbose, nested) for fam in families for nz in noise
+    tasks = [(fam, k, nz, verbose) for fam in families for nz in noise
              for k in range(draws)]
 
     def report(row):
@@ -294,10 +289,7 @@ if __name__ == "__main__":
     parser.add_argument("--out", help="write every row as JSON here")
     parser.add_argument("--verbose", action="store_true")
     parser.add_argument("--jobs", type=int, default=1, help="processes (one thread each)")
-    parser.add_argument("--nested", action="store_true",
-                        help="experimental: also try hidden states inside hidden equations")
     args = parser.parse_args()
     if args.quick:
         args.draws, args.noise = 3, [0.01]
-    main(args.families, args.draws, tuple(args.noise), args.out, args.verbose, args.jobs,
-         args.nested)
+    main(args.families, args.draws, tuple(args.noise), args.out, args.verbose, args.jobs)

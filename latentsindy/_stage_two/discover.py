@@ -32,10 +32,9 @@ VARIATION_SIGMAS = 3.0  # variation must exceed this many posterior std ...
 VARIATION_RELATIVE = 0.05  # ... and this fraction of the coefficient's mean size
 THRESHOLD = 0.05  # smallest share of an equation's RMS rate a constant term may explain
 STAGE_ONE_SHARE = 0.5  # stage one also runs on segments at least this share of the longest
-# Nested hidden states (:mod:`.nested`) are off until the discovery table is re-measured
-# with them (issue 20): on Lorenz from x alone they find the right structure's hidden
-# states but refinement has not yet reached the law (see the README's status).
-NESTED = False
+# Nested hidden states (:mod:`.nested`): tried only when no proposal with one hidden
+# state (or one and its rate) reproduces the data to about its noise level.
+NESTED = True
 
 
 def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_terms=None,
@@ -99,7 +98,9 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         the coefficients come from the closure's integral fit.
     max_hidden : int
         At most this many hidden states in any structure judged (default 3): from
-        shared variation, and a hidden state's rate (needs 2).
+        shared variation, a hidden state's rate (needs 2), and a hidden state inside
+        another's equation (needs 2; Lorenz seen through x: ``h1`` is the coefficient
+        of x in ``dh0/dt``).
     gaps : {"split", "raise"}
         ``"split"`` (default): rows with missing values are dropped and a recording is
         split into segments at gaps (a time step 20 times the spacing around it); the

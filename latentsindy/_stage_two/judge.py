@@ -12,7 +12,7 @@ and the summary says so.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import sympy as sp
@@ -23,7 +23,7 @@ from .field import ParametricSystem
 from .first_integral import integrated_proposal, integrated_system
 from .gauge import shifted_guesses, shifted_proposal, shifted_system
 from .hypotheses import Context, Proposal, close
-from .nested import nested_proposals, nested_system
+from .nested import nested_proposals, nested_system, shifted_nested_system
 from .refine import Fit, Problem, RefineOptions, cross_validate
 from .shooting import BlowUp
 from .smoother import HiddenFit, single_term
@@ -205,6 +205,7 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
         for parent in parents:
             for p in nested_proposals(parent.proposal, ctx):
                 refined(p)
+        trials = _without_repeats(trials)
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
     verdicts = []
     for t in trials:
@@ -221,7 +222,30 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
         restated = [v for v in restated if v is not None]
         if restated:
             return rank(verdicts + restated)
+    elif ordered and ordered[0].scored:
+        restated = _nested_shifted(ordered[0], ctx, options)
+        if restated is not None:
+            return rank(verdicts + [restated])
     return ordered, uncertain
+
+
+def _without_repeats(trials):
+    """The trials without nested ones that repeat a better nested trial's system: they
+    start with every candidate term free (:func:`.nested.nested_system`), so parents with
+    the same carrier give the same system, and selecting its terms twice (8 s each on
+    Lorenz from x) reaches the same law twice."""
+    drop, kept = set(), []
+    for t in sorted(trials, key=lambda t: t.fit.residual_variance):
+        if t.proposal.nested and any(_same_terms(k.fit.system, t.fit.system) for k in kept):
+            drop.add(id(t))
+        elif t.proposal.nested:
+            kept.append(t)
+    return [t for t in trials if id(t) not in drop]
+
+
+def _same_terms(a: ParametricSystem, b: ParametricSystem) -> bool:
+    return (a.state_names == b.state_names and a.features == b.features
+            and np.array_equal(a.free | (a.coef != 0), b.free | (b.coef != 0)))
 
 
 def _rate_candidates(proposals, ctx: Context, keep: int = 2) -> list:
@@ -311,6 +335,24 @@ def _regauged(verdict: Verdict, ctx: Context, options) -> Verdict | None:
     if trial is None or trial.fit.residual_variance > 2.0 * max(misfit, 1.0):
         return None  # judged as the proposals are: beyond twice the best, not scored
     return _finish(trial)
+
+
+def _nested_shifted(verdict: Verdict, ctx: Context, options) -> Verdict | None:
+    """A nested winner with its nested state shifted out of its flat direction
+    (:func:`.nested.shifted_nested_system`), refined, its terms selected and scored;
+    None if there is no such shift or it cannot be integrated."""
+    found = shifted_nested_system(verdict, ctx)
+    if found is None:
+        return None
+    system, shifts = found
+    guesses = shifted_guesses(verdict.problem.trajectories(verdict.fit), verdict.system,
+                              shifts)
+    if guesses is None:
+        return None
+    proposal = replace(verdict.proposal, hidden=[g[:, system.n_observed:] for g in guesses],
+                       origin=verdict.proposal.origin + ", nested state shifted")
+    data = (verdict.problem.times, verdict.problem.observed)
+    return _restated(proposal, system, guesses, data, verdict, options)
 
 
 def _integrated(verdict: Verdict, options) -> Verdict | None:
@@ -410,6 +452,4 @@ def _extends(v, chosen):
 
 
 def same_structure(a: Verdict, b: Verdict) -> bool:
-    sa, sb = a.system, b.system
-    return (sa.state_names == sb.state_names and sa.features == sb.features
-            and np.array_equal(sa.free | (sa.coef != 0), sb.free | (sb.coef != 0)))
+    return _same_terms(a.system, b.system)

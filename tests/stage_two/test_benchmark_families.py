@@ -52,6 +52,20 @@ def test_one_epidemic_wave_at_five_percent_noise():
     assert s["error"] <= 0.05
 
 
+def test_lorenz_seen_through_x_alone():
+    """Issue 20: Lorenz with only x observed, 1% noise. dx/dt's constant varies (h0 =
+    sigma y); h0's law needs a second hidden state, the varying coefficient of x in
+    dh0/dt (h1 = sigma (rho - z), nested discovery), found with every candidate term of
+    the hidden laws free, its terms selected, and both hidden states shifted out of
+    their flat directions: two hidden states, exact structure, R^2 >= 0.95 (the issue's
+    bar), held-out score <= 1.5, coefficients within 2%, confident."""
+    result, s = _discover("lorenz_x", 5, 0.01)
+    assert s["n_hidden"] == 2 and s["exact"], s
+    assert s["r2"] >= 0.95 and s["error"] <= 0.02
+    assert result.score <= 1.5 and result.confident
+    assert "coefficient of x in dh0/dt" in result.summary()
+
+
 def test_ten_percent_noise_finishes_and_reports():
     """10% noise: no crash, no hang; a closed system with scores and alternatives."""
     result, s = _discover("lotka_volterra", 1, 0.1)
@@ -82,3 +96,27 @@ def test_new_family_truth_holds_in_the_natural_variables(family):
         inner = slice(5, -5)
         err = np.sqrt(np.mean((model[inner] - rate[inner]) ** 2))
         assert err <= 1e-3 * np.sqrt(np.mean(rate[inner] ** 2)), (name, err)
+
+
+def test_a_hidden_state_is_scored_as_the_coefficient_in_the_equation_as_found():
+    """Lorenz from x found as dx/dt = h0 defines h0 = sigma (y - x) (the coefficient of 1
+    in that equation), found as dx/dt = h0 - sigma x it defines h0 = sigma y: the truth is
+    moved into whichever variables were found, and in the first it reads dh0/dt =
+    -(1 + sigma) h0 + x h1 with h1 = sigma (rho - z - 1)."""
+    import sympy as sp
+    from _scoring import hidden_definitions, truth_in_variables
+
+    d = draw("lorenz_x", 0, 0.0)
+    x, y, z, h0 = sp.symbols("x y z h0", real=True)
+    s, r = sp.symbols("sigma rho")
+    absorbed = [("coef", "x", "1", ()), ("coef", "h0", "x", (h0,))]
+    shown = [("coef", "x", "1", (x,)), ("coef", "h0", "x", (h0,))]
+    names = ["h0", "h1"]
+    phis = hidden_definitions(d, absorbed, names)
+    values = d.truth["values"]
+    assert sp.simplify((phis[0] - s * (y - x)).subs(values)) == 0
+    assert sp.simplify((phis[1] - s * (r - z - 1)).subs(values)) == 0
+    assert sp.simplify((hidden_definitions(d, shown, names)[0] - s * y).subs(values)) == 0
+    h1 = sp.Symbol("h1", real=True)
+    law = sp.expand(truth_in_variables(d, absorbed, names)["h0"].subs(values))
+    assert sp.expand(law - (-(1 + values[s]) * h0 + x * h1)) == 0

@@ -1,5 +1,8 @@
 """Pieces of nested discovery (a hidden state inside another's equation)."""
 
+from types import SimpleNamespace
+
+import pytest
 import sympy as sp
 
 from latentsindy._stage_two.nested import monomial_name
@@ -10,3 +13,63 @@ def test_monomial_names_follow_the_library_convention():
     assert monomial_name(x * h0**2, [x, h0]) == "x h0^2"
     assert monomial_name(sp.Integer(1), [x, h0]) == "1"
     assert monomial_name(x, [x, h0]) == "x"
+
+
+SIGMA, RHO, BETA = 10.0, 28.0, 8.0 / 3.0
+
+
+def _lorenz_in_a_shifted_gauge(c, k):
+    """Lorenz seen through x with both hidden states shifted: h0 = sigma (y - x) - c x
+    (so dx/dt = h0 + c x) and h1 = sigma (rho - z - 1) + k x. By substitution and the
+    chain rule the same system reads
+
+    dh0/dt = -(1 + s + c) h0 + x h1 - k x^2 - (c (1 + s) + c^2) x,
+    dh1/dt = -x h0 - (s + c) x^2 - b h1 + k (b + c) x + k h0 + b s (r - 1).
+    """
+    import numpy as np
+
+    from latentsindy._stage_two.field import ParametricSystem
+
+    x, h0, h1 = sp.symbols("x h0 h1", real=True)
+    features = (h0, x * h1, x**2, x, x * h0, h1, sp.Integer(1))
+    laws = [{h0: 1.0, x: c},
+            {h0: -(1 + SIGMA + c), x * h1: 1.0, x**2: -k, x: -(c * (1 + SIGMA) + c * c)},
+            {x * h0: -1.0, x**2: -(SIGMA + c), h1: -BETA, x: k * (BETA + c), h0: k,
+             sp.Integer(1): BETA * SIGMA * (RHO - 1)}]
+    coef = np.array([[law.get(f, 0.0) for f in features] for law in laws])
+    free = coef != 0
+    free[0, 0] = free[1, 1] = False  # the definitions
+    system = ParametricSystem(("x", "h0", "h1"), 1, features, coef, free)
+    proposal = SimpleNamespace(order=1, structure=SimpleNamespace(n_hidden=1, pivots=((0, 0),)),
+                               nested=((None, x, None),))
+    ctx = SimpleNamespace(feature_exprs=(sp.Integer(1), x, x**2), free_rows=np.array([True]))
+    return SimpleNamespace(proposal=proposal, system=system), ctx, (x, h0, h1)
+
+
+@pytest.mark.parametrize("c, k", [(0.0, 13.0), (2.5, 13.0), (-7.5, 0.0)])
+def test_nested_shift_gives_back_the_lorenz_law(c, k):
+    """The shifts that absorb c x of dx/dt into h0 and then -k x^2 of dh0/dt into h1
+    are c x and -k x, and the shifted system is Lorenz's law in these variables:
+    dx/dt = h0, dh0/dt = -(1 + s) h0 + x h1, dh1/dt = -x h0 - b h1 - s x^2 + b s (r - 1),
+    the definitions still fixed."""
+    from latentsindy._stage_two.nested import shifted_nested_system
+
+    verdict, ctx, (x, h0, h1) = _lorenz_in_a_shifted_gauge(c, k)
+    system, shifts = shifted_nested_system(verdict, ctx)
+    assert sp.expand(shifts.get(h0, 0) - c * x) == 0
+    assert sp.expand(shifts.get(h1, 0) + k * x) == 0
+    rhs = system.rhs()
+    want = {"x": h0, "h0": -(1 + SIGMA) * h0 + x * h1,
+            "h1": -x * h0 - BETA * h1 - SIGMA * x**2 + BETA * SIGMA * (RHO - 1)}
+    for name, law in want.items():
+        diff = sp.Poly(sp.expand(rhs[name] - law), x, h0, h1)
+        assert max((abs(float(v)) for v in diff.coeffs()), default=0.0) < 1e-9, (name, diff)
+    assert not system.free[0, system.features.index(h0)]
+    assert not system.free[1, system.features.index(x * h1)]
+
+
+def test_nested_system_already_in_its_gauge_is_left_alone():
+    from latentsindy._stage_two.nested import shifted_nested_system
+
+    verdict, ctx, _ = _lorenz_in_a_shifted_gauge(0.0, 0.0)
+    assert shifted_nested_system(verdict, ctx) is None
