@@ -200,8 +200,7 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
             refined(p)
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
     if nested and best > RATE_TRIGGER and max_hidden >= 2:
-        parents = sorted((t for t in trials if t.proposal.n_states == 1),
-                         key=lambda t: t.fit.residual_variance)[:NESTED_PARENTS]
+        parents = _distinct_parents(trials, NESTED_PARENTS)
         for parent in parents:
             for p in nested_proposals(parent.proposal, ctx):
                 refined(p)
@@ -227,6 +226,25 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
         if restated is not None:
             return rank(verdicts + [restated])
     return ordered, uncertain
+
+
+def _distinct_parents(trials, keep):
+    """Up to ``keep`` single-hidden-state trials, best misfit first, each with its own
+    hidden series. Nested proposals come from the parent's series, its carrier and its
+    closure library, so a proposal and its fuller-closure variant (same series) would
+    spend two of the places on one set of nested proposals (on Lorenz from x the series
+    that led to the law was then never tried in 1 of 10 draws)."""
+    chosen = []
+    for t in sorted((t for t in trials if t.proposal.n_states == 1),
+                    key=lambda t: t.fit.residual_variance):
+        if not any(_same_series(t.proposal.hidden, c.proposal.hidden) for c in chosen):
+            chosen.append(t)
+    return chosen[:keep]
+
+
+def _same_series(a, b) -> bool:
+    return len(a) == len(b) and all(np.shape(u) == np.shape(v) and np.array_equal(u, v)
+                                    for u, v in zip(a, b, strict=True))
 
 
 def _without_repeats(trials):
