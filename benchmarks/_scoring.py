@@ -18,11 +18,13 @@ import sympy as sp
 
 def definitions(result):
     """Each hidden state as ("coef", state, feature, others) or ("rate", k): the rate of
-    hidden state k. ``others`` are the terms of the found equation ``d state/dt`` free of
-    this and later hidden states: the hidden state is the coefficient of ``feature`` in
-    that equation as found, so it carries every true term divisible by ``feature`` that
-    the found equation does not show on its own (Lorenz from x: ``dx/dt = h0`` defines
-    ``h0 = sigma (y - x)``, ``dx/dt = h0 - sigma x`` defines ``h0 = sigma y``)."""
+    hidden state k. ``others`` are the terms of the found equation ``d state/dt`` as
+    monomials in the definition's variables (a term with a hidden state that is not one of
+    them counts as that state's carrier): the hidden state is the coefficient of
+    ``feature`` in that equation as found, so it carries every true term divisible by
+    ``feature`` that the found equation does not show on its own (Lorenz from x: ``dx/dt
+    = h0`` defines ``h0 = sigma (y - x)``, ``dx/dt = h0 - sigma x`` defines ``h0 = sigma
+    y``)."""
     states = getattr(result, "hidden_states", None)
     if states is None:  # results without structured hidden states
         return [("coef", s, f) for s, f in result.hidden_terms]
@@ -33,8 +35,13 @@ def definitions(result):
             out.append(("rate", names.index(h.rate_of)))
             continue
         state, feature = h.terms[0]
-        later = {sp.Symbol(n, real=True) for n in names[a:]}
-        others = tuple(f for f in result.equation(state) if not f.free_symbols & later)
+        # the terms as monomials in the definition's variables: the observed states, and
+        # in a hidden state's equation the hidden states defined before this one; a term
+        # with another hidden state shows that state's carrier (dx/dt = h0 + x h1: h0
+        # does not take in the x monomial, h1 carries it)
+        hidden = names if state not in names else names[a:]
+        strip = {sp.Symbol(n, real=True): sp.Integer(1) for n in hidden}
+        others = tuple(f.xreplace(strip) for f in result.equation(state))
         out.append(("coef", state, feature, others))
     return out
 
@@ -84,7 +91,7 @@ def hidden_definitions(draw, defs, hidden_names):
         if d[0] == "rate":
             if d[1] >= len(phis):
                 return None
-            phis.append(sp.expand(_rate(phis[d[1]], rhs, hidden)))
+            phis.append(sp.expand(_rate(phis[d[1]], rhs, hidden + obs_syms)))
             continue
         _, state, feature, *others = d
         if state in obs:

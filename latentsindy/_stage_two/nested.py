@@ -184,13 +184,27 @@ def shifted_nested_system(verdict, ctx: Context):
     symbols = system.symbols
     n_obs = system.n_observed
     observed, parent, child = symbols[:n_obs], symbols[n_obs], symbols[n_obs + 1]
+    child_step = (child, carrier, [*observed, parent], parent.name)
+    attempts = [[child_step]]
+    if ctx.free_rows[i] and np.count_nonzero(p.structure.loadings) == 1:
+        # a parent seen through several terms would carry its shift into all of them
+        parent_step = (parent, sp.sympify(ctx.feature_exprs[k]), observed,
+                       system.state_names[i])
+        attempts.insert(0, [parent_step, child_step])
+    for steps in attempts:  # both shifts; the nested state's alone if that fails
+        found = _shifted_system(system, steps)
+        if found is not None:
+            return found
+    return None
+
+
+def _shifted_system(system, steps):
+    """``system`` with each (state, carrier, within, equation) step's shift applied in
+    turn; None when nothing moves or a law leaves the system's features. The fixed terms
+    (the definitions) hold the state they define, so no shift can take them in."""
     laws, shifts = system.rhs(), {}
-    steps = [(parent, sp.sympify(ctx.feature_exprs[k]), observed, system.state_names[i])]
-    if not ctx.free_rows[i]:
-        steps = []
-    steps.append((child, carrier, [*observed, parent], parent.name))
-    for state, theta, within, equation in steps:
-        shift = _absorbable(laws[equation], theta, within)
+    for state, carrier, within, equation in steps:
+        shift = _absorbable(laws[equation], carrier, within)
         if shift != 0:
             laws = _shifted_laws(laws, state, shift, within)
             shifts[state] = shift
@@ -199,7 +213,7 @@ def shifted_nested_system(verdict, ctx: Context):
     rows = polynomial_rows(laws, system.state_names)
     if rows is None or not {f for row in rows for f in row} <= set(system.features):
         return None
-    shifted = system_from_rows(system.state_names, n_obs, rows, system,
+    shifted = system_from_rows(system.state_names, system.n_observed, rows, system,
                                leading=system.features, kept_rows=len(rows))
     return shifted, shifts
 

@@ -4,6 +4,7 @@ against the truth moved into them."""
 
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -120,3 +121,43 @@ def test_a_hidden_state_is_scored_as_the_coefficient_in_the_equation_as_found():
     h1 = sp.Symbol("h1", real=True)
     law = sp.expand(truth_in_variables(d, absorbed, names)["h0"].subs(values))
     assert sp.expand(law - (-(1 + values[s]) * h0 + x * h1)) == 0
+
+
+def _found(equations, states):
+    """A stand-in result: hidden states (name, (equation, feature), rate_of) and each
+    state's found equation {term: coefficient}."""
+    hidden = tuple(SimpleNamespace(name=n, terms=(t,) if t else (), rate_of=r)
+                   for n, t, r in states)
+    return SimpleNamespace(hidden_states=hidden, equation=lambda s: equations[s])
+
+
+def test_two_hidden_states_in_one_equation_keep_their_own_monomials():
+    """Truth dx/dt = a y + x z found as dx/dt = h0 + x h1: h0 = a y (it does not take in
+    the x monomial, which h1 carries) and h1 = z."""
+    import sympy as sp
+    from _scoring import definitions, hidden_definitions
+
+    x, y, z, a = sp.symbols("x y z a", real=True)
+    h0, h1 = sp.symbols("h0 h1", real=True)
+    d = SimpleNamespace(truth={"rhs": {x: a * y + x * z, y: -y, z: -z}, "hidden": [y, z]},
+                        observed_names=("x",))
+    found = _found({"x": {h0: 1.0, x * h1: 1.0}},
+                   [("h0", ("x", "1"), None), ("h1", ("x", "x"), None)])
+    phis = hidden_definitions(d, definitions(found), ["h0", "h1"])
+    assert sp.expand(phis[0] - a * y) == 0 and sp.expand(phis[1] - z) == 0
+
+
+def test_a_rate_follows_its_state_through_the_observed_states():
+    """Truth dy/dt = u - c y, du/dt = v, dv/dt = -w u, found as dy/dt = h0 (h0 = u - c y)
+    with g0 its rate: g0 = v - c (u - c y), the observed part differentiated too."""
+    import sympy as sp
+    from _scoring import definitions, hidden_definitions
+
+    y, u, v, c, w = sp.symbols("y u v c w", real=True)
+    h0 = sp.Symbol("h0", real=True)
+    d = SimpleNamespace(truth={"rhs": {y: u - c * y, u: v, v: -w * u}, "hidden": [u, v]},
+                        observed_names=("y",))
+    found = _found({"y": {h0: 1.0}}, [("h0", ("y", "1"), None), ("g0", None, "h0")])
+    phis = hidden_definitions(d, definitions(found), ["h0", "g0"])
+    assert sp.expand(phis[0] - (u - c * y)) == 0
+    assert sp.expand(phis[1] - (v - c * (u - c * y))) == 0
