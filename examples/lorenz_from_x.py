@@ -93,7 +93,8 @@ def main(noise=0.01, output="examples/output", verbose=True, seed=0):
     print(f"\ntruth (sigma={SIGMA}, rho={RHO}, beta={BETA:.4f}), in the found variables:")
     if report["absorbed"] is not None:
         for state, law in truth(report["absorbed"]).items():
-            print(f"  d{state}/dt = " + " + ".join(f"{v:.4g}*{f}" for f, v in law.items()))
+            terms = " + ".join(f"{v:.4g}*{f}" for f, v in law.items())
+            print(f"  d{state}/dt = " + terms.replace("+ -", "- "))
     print(f"R^2 of y and z from the hidden and observed states: {np.round(r2, 5)}")
     print("largest coefficient error per equation: "
           + ", ".join(f"{k}: {v:.2%}" for k, v in report["errors"].items())
