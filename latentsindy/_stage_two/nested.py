@@ -155,7 +155,8 @@ def nested_system(p: Proposal, ctx: Context, build):
     # The hidden equations start with every candidate term free: their closures come from
     # first estimates of two hidden series (the parent's in a gauge the observed data do
     # not fix) and miss terms the integrated system needs. On Lorenz from x at 1% noise,
-    # 8 of 10 draws refine to the noise level this way and none from the closures alone;
+    # 8 of 10 draws refine to the noise level this way, the two tried from the closures
+    # alone stopped 32-1500 times above it;
     # stepwise selection then removes what the data do not support.
     free[n_obs:] |= candidates[n_obs:]
     candidates[n_obs:] = False
