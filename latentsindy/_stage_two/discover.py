@@ -32,8 +32,8 @@ VARIATION_SIGMAS = 3.0  # variation must exceed this many posterior std ...
 VARIATION_RELATIVE = 0.05  # ... and this fraction of the coefficient's mean size
 THRESHOLD = 0.05  # smallest share of an equation's RMS rate a constant term may explain
 STAGE_ONE_SHARE = 0.5  # stage one also runs on segments at least this share of the longest
-# Nested hidden states (:mod:`.nested`): tried only when no proposal with one hidden
-# state (or one and its rate) reproduces the data to about its noise level.
+# Nested hidden states (:mod:`.nested`): tried only when the best system with one hidden
+# state (or one and its rate) misses the data by far (``judge.NESTED_TRIGGER``).
 NESTED = True
 
 

@@ -58,12 +58,20 @@ def shifted_system(verdict, ctx):
             shifts[symbols[system.n_observed + a]] = shift
     if not shifts:
         return None
-    back = {h: h - s for h, s in shifts.items()}
-    new = {name: sp.expand(rhs[name].xreplace(back)) for name in system.state_names}
-    for h, s in shifts.items():
-        new[h.name] = sp.expand(new[h.name] + sum(sp.diff(s, x) * new[x.name] for x in obs))
+    new = shifted_laws(rhs, shifts, obs)
     closure = _closure_features(p, ctx, system)
     return _assemble(system, new, closure), shifts, dropped
+
+
+def shifted_laws(laws, shifts, within):
+    """The laws ({name: expression}) in the shifted states ``h + shifts[h]`` (each shift
+    a function of the states ``within``), under the old names: substitution, and the
+    chain rule for each shifted state's own law."""
+    back = {h: h - s for h, s in shifts.items()}
+    new = {name: sp.expand(law.xreplace(back)) for name, law in laws.items()}
+    for h, s in shifts.items():
+        new[h.name] = sp.expand(new[h.name] + sum(sp.diff(s, x) * new[x.name] for x in within))
+    return new
 
 
 def _closure_features(p, ctx, system):

@@ -24,6 +24,7 @@ import sympy as sp
 from .._core.library import feature_expressions, state_symbols
 from .._core.symbolic import VectorField
 from .field import ParametricSystem, polynomial_rows, system_from_rows
+from .gauge import shifted_laws
 from .hypotheses import Context, Proposal, _usable, pruned
 from .smoother import single_term
 
@@ -207,7 +208,7 @@ def _shifted_system(system, steps):
     for state, carrier, within, equation in steps:
         shift = _absorbable(laws[equation], carrier, within)
         if shift != 0:
-            laws = _shifted_laws(laws, state, shift, within)
+            laws = shifted_laws(laws, {state: shift}, within)
             shifts[state] = shift
     if not shifts:
         return None
@@ -230,12 +231,3 @@ def _absorbable(law, carrier, within):
         if ratio.free_symbols <= set(within) and ratio.is_polynomial(*within):
             shift += value * ratio
     return sp.expand(shift)
-
-
-def _shifted_laws(laws, state, shift, within):
-    """The laws in ``state + shift`` (``shift`` in the states ``within``), under the old
-    name: substitution, and the chain rule for the shifted state's own law."""
-    new = {n: sp.expand(law.xreplace({state: state - shift})) for n, law in laws.items()}
-    new[state.name] = sp.expand(new[state.name] + sum(sp.diff(shift, s) * new[s.name]
-                                                      for s in within))
-    return new
