@@ -2,10 +2,10 @@
 
 Features are sympy expressions in the state symbols (the observed library's features
 times powers of hidden states, and the closure library's monomials). Monomials are
-evaluated from their exponents (a few batched tensor operations for any number of
-features); any other feature (Fourier, custom libraries) through sympy's lambdify. Both
-give the features and their gradients, which the refinement's sensitivity equations
-need.
+evaluated from their exponents (a few batched array operations for any number of
+features, in numpy or torch); any other feature (Fourier, custom libraries) through
+sympy's lambdify, in torch. Both give the features and their gradients, which the
+refinement's sensitivity equations need.
 """
 
 from __future__ import annotations
@@ -133,6 +133,8 @@ class FeatureMap:
             self.degree = int(self.exponents.max(initial=0))
             self.basis, self.values_table, self.gradients_table = _monomial_tables(
                 self.exponents)
+            self._flat_gradients = self.gradients_table.reshape(len(self.basis), -1)
+            self._flat = (self.basis + (self.degree + 1) * np.arange(self.n_states)).ravel()
 
     def __call__(self, y: torch.Tensor, gradients: bool = True):
         """``phi`` (..., F) and, if asked, ``dphi`` (..., F, n)."""
@@ -143,36 +145,47 @@ class FeatureMap:
         phi = mono @ values
         if not gradients:
             return phi, None
-        return phi, (mono @ grads).unflatten(-1, (self.n_features, self.n_states))
+        return phi, (mono @ grads).reshape(*y.shape[:-1], self.n_features, self.n_states)
 
-    def tables(self, like: torch.Tensor):
-        """``values_table`` (M, F) and ``gradients_table`` flattened to (M, F * n) on
-        ``like``'s device and dtype (made once per device and dtype)."""
+    def tables(self, like):
+        """``values_table`` (M, F) and ``gradients_table`` flattened to (M, F * n), as
+        numpy arrays for a numpy ``like``, else as tensors on ``like``'s device and dtype
+        (made once per device and dtype)."""
+        if isinstance(like, np.ndarray):
+            return self.values_table, self._flat_gradients
         key = (like.device, like.dtype)
         if key not in self._cache:
             on = dict(dtype=like.dtype, device=like.device)
             self._cache[key] = (torch.as_tensor(self.values_table, **on),
-                                torch.as_tensor(self.gradients_table, **on).flatten(1))
+                                torch.as_tensor(self._flat_gradients, **on))
         return self._cache[key]
 
-    def monomials(self, y: torch.Tensor) -> torch.Tensor:
-        """The monomials (..., M) of ``basis`` at ``y`` (polynomial features only): the
-        features are ``monomials @ values_table`` and their gradients
-        ``monomials @ gradients_table``, so a field that is linear in its coefficients
-        and its Jacobian come from one matrix product."""
-        powers = [torch.ones_like(y)]
-        for _ in range(self.degree):
-            powers.append(powers[-1] * y)
-        powers = torch.stack(powers, dim=-1).flatten(-2)  # (..., n * (D + 1))
-        flat = self._flat_index(y)
-        picked = powers.index_select(-1, flat)
-        return picked.unflatten(-1, (len(self.basis), self.n_states)).prod(dim=-1)
+    def monomials(self, y):
+        """The monomials (..., M) of ``basis`` at ``y`` (polynomial features only; a
+        numpy array or a tensor, the result alike): the features are ``monomials @
+        values_table`` and their gradients ``monomials @ gradients_table``, so a field
+        that is linear in its coefficients and its Jacobian come from one matrix
+        product."""
+        lead = y.shape[:-1]
+        if isinstance(y, np.ndarray):
+            powers = np.empty((*y.shape, self.degree + 1))
+            powers[..., 0] = 1.0
+            for d in range(self.degree):
+                np.multiply(powers[..., d], y, out=powers[..., d + 1])
+        else:
+            powers = [torch.ones_like(y)]
+            for _ in range(self.degree):
+                powers.append(powers[-1] * y)
+            powers = torch.stack(powers, -1)
+        picked = powers.reshape(*lead, -1)[..., self._flat_index(y)]  # (..., M * n)
+        return picked.reshape(*lead, len(self.basis), self.n_states).prod(-1)
 
     def _flat_index(self, y):
+        if isinstance(y, np.ndarray):
+            return self._flat
         key = ("flat", y.device)
         if key not in self._cache:
-            flat = self.basis + (self.degree + 1) * np.arange(self.n_states)
-            self._cache[key] = torch.as_tensor(flat.ravel(), device=y.device)
+            self._cache[key] = torch.as_tensor(self._flat, device=y.device)
         return self._cache[key]
 
     def _lambdified(self, y, gradients):
