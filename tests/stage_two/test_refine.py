@@ -104,6 +104,36 @@ def test_polynomial_field_matches_the_general_path():
             torch.testing.assert_close(u, v, rtol=1e-12, atol=1e-10)
 
 
+def test_numpy_and_torch_integrate_a_polynomial_field_alike():
+    """On the CPU a polynomial field is integrated in numpy; on a GPU the same code runs
+    in torch (CI has no GPU, so the torch path is forced here): states and
+    sensitivities equal to 1e-12, with and without sensitivities; a blow-up is reported
+    by both."""
+    from latentsindy._stage_two.shooting import Integrator, make_groups
+
+    feats = (sp.Integer(1), X, Y, Z, X * Y, X * Z)
+    coef = np.array([[0.0, -10.0, 10.0, 0.0, 0.0, 0.0],
+                     [0.0, 28.0, -1.0, 0.0, 0.0, -1.0],
+                     [0.0, 0.0, 0.0, -8.0 / 3.0, 1.0, 0.0]])
+    system = ParametricSystem(("x", "y", "z"), 1, feats, coef, coef != 0)
+    t = np.linspace(0.0, 2.0, 200)
+    group = make_groups([t], [np.zeros((200, 1))], 0.25, 0.01)[0]
+    starts = np.random.default_rng(2).normal([1.0, 1.0, 20.0], 1.0, size=(group.n_segments, 3))
+    fast, slow = Integrator(system, 1e6), Integrator(system, 1e6)
+    slow.in_numpy = False
+    assert fast.in_numpy
+    for with_sens in (True, False):
+        a = fast.run(coef, starts, group, sensitivities=with_sens)
+        b = slow.run(coef, starts, group, sensitivities=with_sens)
+        for u, v in zip(torch.utils._pytree.tree_leaves(a), torch.utils._pytree.tree_leaves(b),
+                        strict=True):
+            assert u.dtype == v.dtype == torch.float64
+            torch.testing.assert_close(u, v, rtol=1e-12, atol=1e-10)
+    for integrator in (fast, slow):
+        with pytest.raises(BlowUp):
+            integrator.run(coef * 50.0, starts, group)
+
+
 def test_single_thread_covers_torch_and_the_blas():
     """Stage two's small algebra runs on one thread, torch's and the BLAS's, and both
     are restored afterwards."""
