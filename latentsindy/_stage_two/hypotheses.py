@@ -27,7 +27,7 @@ Sources of proposals:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import sympy as sp
@@ -59,6 +59,14 @@ class Context:
     free_rows: np.ndarray  # equations whose terms are learned
     threshold: float
     closure_library: object
+    # (structure, order) -> (fit, closure, hidden) of :func:`evaluate` on these data:
+    # the proposals' searches reach the same structure by several paths (a fifth of the
+    # evaluations on the modulated oscillator). A context made from this one
+    # (``dataclasses.replace``) starts with its own, empty cache.
+    evaluated: dict = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "evaluated", {})
 
 
 @dataclass(frozen=True)
@@ -86,9 +94,17 @@ class Proposal:
 
 
 def evaluate(structure, ctx: Context, origin: str, order: int = 1) -> Proposal:
-    """Hidden series of ``structure`` and their closure."""
-    fit = fit_hidden(structure, ctx.thetas, ctx.observed, ctx.times, ctx.sigma, ctx.spacing)
-    return close(structure, fit, ctx, origin, order)
+    """Hidden series of ``structure`` and their closure (computed once per structure,
+    loadings included, and context)."""
+    key = (structure.support.tobytes(), structure.loadings.tobytes(),
+           structure.loadings.shape, structure.pivots, order)
+    if key not in ctx.evaluated:
+        fit = fit_hidden(structure, ctx.thetas, ctx.observed, ctx.times, ctx.sigma,
+                         ctx.spacing)
+        p = close(structure, fit, ctx, origin, order)
+        ctx.evaluated[key] = (p.fit, p.closure, p.hidden)
+    fit, closure, hidden = ctx.evaluated[key]
+    return Proposal(structure, fit, closure, hidden, order, origin)
 
 
 @timed("closure")

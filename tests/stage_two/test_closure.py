@@ -250,3 +250,33 @@ def test_every_constant_back_separates_a_drive_from_the_oscillator():
     assert rate.score < 0.1 * rate_one.score
     assert with_every_constant(replace(ctx, free_rows=np.array([True, False])), support,
                                1, 0) is None
+
+
+def test_a_structure_is_evaluated_once_per_context():
+    """``evaluate`` keeps each structure's hidden series and closure per context: the
+    same structure again (another origin) costs no new fit and gives the same numbers;
+    other loadings are another structure; a context made from this one with
+    ``dataclasses.replace`` (the nested discovery's augmented data) starts empty."""
+    from dataclasses import replace
+
+    from latentsindy._stage_two import hypotheses
+
+    ctx, _, _ = _driven_context()
+    support = np.zeros((2, len(ctx.feature_names)), dtype=bool)
+    support[0, ctx.feature_names.index("y")] = True
+    support[1, 0] = True
+    structure = single_term(2, len(ctx.feature_names), 1, 0, support)
+    first = hypotheses.evaluate(structure, ctx, "first")
+    assert len(ctx.evaluated) == 1
+    again = hypotheses.evaluate(structure, ctx, "again")
+    assert (again.origin, first.origin) == ("again", "first")
+    assert again.fit is first.fit and again.score == first.score
+    assert len(ctx.evaluated) == 1
+    loads = structure.loadings.copy()
+    loads[1, ctx.feature_names.index("x"), 0] = 0.5
+    other = hypotheses.evaluate(Structure(structure.support | (loads[..., 0] != 0), loads,
+                                          structure.pivots), ctx, "other")
+    assert len(ctx.evaluated) == 2 and other.fit is not first.fit
+    rate = hypotheses.evaluate(structure, ctx, "rate", order=2)
+    assert len(ctx.evaluated) == 3 and rate.order == 2
+    assert replace(ctx, threshold=0.1).evaluated == {}
