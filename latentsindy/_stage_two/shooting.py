@@ -193,11 +193,14 @@ class Integrator:
             func = self._field(coef)
         else:
             z0, func = y0, self._plain(coef)
-        z = rk4(func, z0, grid)  # (G, K, ...) on the grid
-        dz = func(z)
-        z, dz = z.swapaxes(0, 1), dz.swapaxes(0, 1)  # (K, G, ...)
-        # the caller's algebra (normal equations, residuals) is on the CPU, in torch
-        values, ends = _hermite(z, dz, grid, positions), z[:, -1]
+        # overflowing sensitivities become inf silently, as in torch (the states
+        # themselves are bounded: BlowUp)
+        with np.errstate(over="ignore", invalid="ignore"):
+            z = rk4(func, z0, grid)  # (G, K, ...) on the grid
+            dz = func(z)
+            z, dz = z.swapaxes(0, 1), dz.swapaxes(0, 1)  # (K, G, ...)
+            # the caller's algebra (normal equations, residuals) is on the CPU, in torch
+            values, ends = _hermite(z, dz, grid, positions), z[:, -1]
         if self.in_numpy:
             values, ends = torch.from_numpy(values), torch.from_numpy(np.ascontiguousarray(ends))
         else:
