@@ -40,6 +40,7 @@ from .smoother import HiddenFit, Structure, fit_hidden, prune_constants, single_
 MAX_RANK = 3  # at most this many hidden states from shared variation
 KEEP = 3  # proposals passed on to the judge besides the ones always judged
 IMPROVE = 0.8  # a constant-term move must cut the closure error by 20%
+CACHE_BYTES = 2**28  # evaluated structures kept per context (see evaluate)
 
 
 @dataclass(frozen=True)
@@ -98,13 +99,17 @@ def evaluate(structure, ctx: Context, origin: str, order: int = 1) -> Proposal:
     loadings included, and context)."""
     key = (structure.support.tobytes(), structure.loadings.tobytes(),
            structure.loadings.shape, structure.pivots, order)
-    if key not in ctx.evaluated:
-        fit = fit_hidden(structure, ctx.thetas, ctx.observed, ctx.times, ctx.sigma,
-                         ctx.spacing)
-        p = close(structure, fit, ctx, origin, order)
+    if key in ctx.evaluated:
+        fit, closure, hidden = ctx.evaluated[key]
+        return Proposal(structure, fit, closure, hidden, order, origin)
+    fit = fit_hidden(structure, ctx.thetas, ctx.observed, ctx.times, ctx.sigma, ctx.spacing)
+    p = close(structure, fit, ctx, origin, order)
+    # the hidden series dominate an entry's size: a few hundred structures of a
+    # 2000-sample series take a few MB; long series stop being kept at CACHE_BYTES
+    size = sum(h.nbytes for h in p.hidden) + sum(h.nbytes for h in fit.hidden)
+    if size * (len(ctx.evaluated) + 1) <= CACHE_BYTES:
         ctx.evaluated[key] = (p.fit, p.closure, p.hidden)
-    fit, closure, hidden = ctx.evaluated[key]
-    return Proposal(structure, fit, closure, hidden, order, origin)
+    return p
 
 
 @timed("closure")

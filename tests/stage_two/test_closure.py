@@ -252,11 +252,12 @@ def test_every_constant_back_separates_a_drive_from_the_oscillator():
                                1, 0) is None
 
 
-def test_a_structure_is_evaluated_once_per_context():
+def test_a_structure_is_evaluated_once_per_context(monkeypatch):
     """``evaluate`` keeps each structure's hidden series and closure per context: the
     same structure again (another origin) costs no new fit and gives the same numbers;
     other loadings are another structure; a context made from this one with
-    ``dataclasses.replace`` (the nested discovery's augmented data) starts empty."""
+    ``dataclasses.replace`` (the nested discovery's augmented data) starts empty; past
+    ``CACHE_BYTES`` nothing more is kept, and the fit is the same."""
     from dataclasses import replace
 
     from latentsindy._stage_two import hypotheses
@@ -279,4 +280,10 @@ def test_a_structure_is_evaluated_once_per_context():
     assert len(ctx.evaluated) == 2 and other.fit is not first.fit
     rate = hypotheses.evaluate(structure, ctx, "rate", order=2)
     assert len(ctx.evaluated) == 3 and rate.order == 2
-    assert replace(ctx, threshold=0.1).evaluated == {}
+    fresh = replace(ctx, threshold=0.1)
+    assert fresh.evaluated == {}
+    monkeypatch.setattr(hypotheses, "CACHE_BYTES", 1000)  # less than one hidden series
+    uncached = hypotheses.evaluate(structure, fresh, "uncached")
+    assert fresh.evaluated == {}
+    np.testing.assert_array_equal(uncached.hidden[0], first.hidden[0])
+    assert uncached.score == first.score
