@@ -61,6 +61,28 @@ def test_encoder_conditions_on_data():
         assert (out_0 - out_1).abs().mean() > 0.05 * out_0.abs().mean()
 
 
+def test_encoder_reads_long_series_at_the_decoders_resolution():
+    """A series longer than ``n_knots`` is averaged down to ``n_knots`` points before the
+    encoder: the latent is that of the average (so the encoder's cost stops growing
+    with the length), and a short series is read as it is."""
+    torch.manual_seed(0)
+    options = TimeVAEOptions(n_knots=64)
+    gen = TimeVAE(2, 3, options)
+    long = torch.randn(1, 2, 1000)
+    short = torch.randn(1, 2, 50)
+    with torch.no_grad():
+        pooled = torch.nn.functional.adaptive_avg_pool1d(long, 64)
+        torch.testing.assert_close(gen.encode(long), gen.encode(pooled), rtol=0, atol=0)
+        mu_short, _ = gen.encode(short)
+        h = gen.encoder(short)
+        direct = gen.to_latent(torch.cat([h.mean(-1), h.std(-1)], -1).mean(0)).chunk(2, -1)[0]
+        torch.testing.assert_close(mu_short, direct, rtol=0, atol=0)
+        # the average is not a subsample: every sample counts
+        changed = long.clone()
+        changed[0, :, 3] += 5.0
+        assert (gen.encode(changed)[0] - gen.encode(long)[0]).abs().max() > 1e-4
+
+
 def test_parameter_count_independent_of_length():
     counts = []
     for n_times in (1000, 8000):
