@@ -26,8 +26,10 @@ from ..generators import build_generator, generator_class
 from .container import write
 
 FORMAT = "latentsindy.DynamicSINDy"
-VERSION = 2  # 2: pinned constants, the structure setting, the exact model's band
-READABLE = (1, 2)
+# 2: pinned constants, the structure setting, the exact model's band; 3: timeVAE's
+# encoder reads a long series averaged down to its knots (older files: every sample)
+VERSION = 3
+READABLE = (1, 2, 3)
 _SETTINGS = ("generator", "generator_options", "training", "structure", "support",
              "time_varying", "seed")
 
@@ -113,6 +115,8 @@ def read_model(meta, arrays) -> DynamicSINDy:
     gen = build_generator(est.generator, inputs.shape[1], support.numel(),
                           est.generator_options)
     gen.allocate(inputs.shape[2], sample_positions(arrays["times"], "cpu"))
+    if meta["version"] < 3 and hasattr(gen, "encoder_points"):
+        gen.encoder_points = None  # its encoder was trained on every sample
     cls = SequentialCoefficientModel if sequential else CoefficientModel
     model = cls(gen, torch.zeros(support.shape), support, weights["time_varying"])
     model.load_state_dict(weights, strict=True)

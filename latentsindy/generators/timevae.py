@@ -99,6 +99,9 @@ class TimeVAE(Generator):
                     nn.Conv1d(o.hidden, o.hidden, o.kernel_size, padding=pad), nn.GELU()]
         self.upsample = nn.Sequential(*ups)
         self.to_coefficients = nn.Conv1d(o.hidden, n_outputs, 1)
+        # points the encoder reads (a longer series is averaged down to them); None reads
+        # every sample, as models saved before model-file version 3 were trained to
+        self.encoder_points = o.n_knots
         # Start from "no time variation": the estimator's constants carry the initial fit.
         nn.init.zeros_(self.to_coefficients.weight)
         nn.init.zeros_(self.to_coefficients.bias)
@@ -107,8 +110,8 @@ class TimeVAE(Generator):
         """Posterior mean and log-variance of z, pooled over time and trajectories."""
         # the series at the decoder's resolution: on 2000 samples the encoder's
         # convolutions were a third of each training step, with the same accuracy
-        if inputs.shape[-1] > self.options.n_knots:
-            inputs = F.adaptive_avg_pool1d(inputs, self.options.n_knots)
+        if self.encoder_points is not None and inputs.shape[-1] > self.encoder_points:
+            inputs = F.adaptive_avg_pool1d(inputs, self.encoder_points)
         h = self.encoder(inputs)
         pooled = torch.cat([h.mean(dim=-1), h.std(dim=-1)], dim=-1).mean(dim=0)
         mu, logvar = self.to_latent(pooled).chunk(2, dim=-1)

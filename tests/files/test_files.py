@@ -195,3 +195,25 @@ def test_model_files_without_library_or_with_wrong_weights(tmp_path):
     np.savez(tmp_path / "bad.npz", **arrays)
     with pytest.raises(ValueError, match=r"bad\.npz cannot be loaded: .*size mismatch"):
         load(tmp_path / "bad.npz")
+
+
+def test_model_files_before_version_3_read_every_sample(tmp_path):
+    """Files written before timeVAE's encoder averaged a long series down to its knots
+    hold an encoder trained on every sample: loaded, it reads every sample again (the
+    coefficients those files were saved with), while a current file reads the average."""
+    from latentsindy import DynamicSINDy, systems
+
+    data = systems.harmonic_oscillator(n_times=600, noise=0.01)  # longer than 256 knots
+    # the generator decides the structure: every term stays time-varying after 40 steps
+    model = DynamicSINDy(ps.PolynomialLibrary(degree=1), structure="generator", verbose=False,
+                         training={"support_steps": 20, "refit_steps": 20}).fit(data.x, data.t)
+    model.save(tmp_path / "m.npz")
+    pooled = model.coefficients(4).samples
+    np.testing.assert_array_equal(load(tmp_path / "m.npz").coefficients(4).samples, pooled)
+    _rewrite(tmp_path / "m.npz", tmp_path / "v2.npz", lambda m: m.__setitem__("version", 2))
+    old = load(tmp_path / "v2.npz")
+    assert old.model_.generator.encoder_points is None
+    model.model_.generator.encoder_points = None  # what the old code computed
+    every = model.coefficients(4).samples
+    assert np.abs(every - pooled).max() > 0
+    np.testing.assert_array_equal(old.coefficients(4).samples, every)
