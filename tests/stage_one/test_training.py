@@ -2,6 +2,7 @@
 forward step); variation the data do not need is frozen (a backward step)."""
 
 import numpy as np
+import pytest
 import torch
 from torch import nn
 
@@ -10,6 +11,7 @@ from latentsindy._stage_one.decisions import (
     restore_absorbed_terms,
     restore_terms,
 )
+from latentsindy._stage_one.flat_adam import FlatAdam
 from latentsindy._stage_one.training import TV_SHARE, CoefficientModel, roughness
 
 
@@ -199,3 +201,61 @@ def test_roughness_per_unit_time():
     assert torch.allclose(tv, TV_SHARE * torch.diff(parabola, dim=1).abs().mean(), rtol=1e-4)
     steps[4] = 0.0
     assert torch.isfinite(roughness(parabola, steps)).all()
+
+
+def _adam_pair(shapes, seed=0):
+    torch.manual_seed(seed)
+    ref = [nn.Parameter(torch.randn(s)) for s in shapes]
+    flat = [nn.Parameter(p.detach().clone()) for p in ref]
+    return ref, flat
+
+
+def test_flat_adam_is_torch_adam_with_clipping_to_the_bit():
+    """The flat optimiser replays torch.optim.Adam(foreach) + clip_grad_norm_ exactly,
+    clipped steps and unclipped steps alike, with a learning rate changed every step."""
+    shapes = [(32, 2, 5), (32,), (32, 32, 5), (8, 64), (1024, 4), (3, 32, 1), (1, 3)]
+    ref, flat = _adam_pair(shapes)
+    torch_adam = torch.optim.Adam(ref, lr=3e-3, foreach=True)
+    ours = FlatAdam(flat, lr=3e-3)
+    clipped = 0
+    for step in range(200):
+        grads = [torch.randn(s) * (0.002 if step % 2 else 0.5) for s in shapes]
+        lr = 3e-3 * (1 - step / 400)
+        torch_adam.param_groups[0]["lr"] = ours.lr = lr
+        torch_adam.zero_grad(set_to_none=True)
+        for p, g in zip(ref, grads, strict=True):
+            p.grad = g.clone()
+        norm = nn.utils.clip_grad_norm_(ref, 1.0)
+        clipped += bool(norm > 1.0)
+        torch_adam.step()
+        ours.zero_grad()
+        for p, g in zip(flat, grads, strict=True):
+            p.grad.copy_(g)
+        ours.step(max_norm=1.0)
+    assert 50 < clipped < 150  # both branches of the clipping ran
+    assert all(torch.equal(a, b) for a, b in zip(ref, flat, strict=True))
+    ours.release()
+    assert all(p.grad is None for p in flat)
+    storages = {p.untyped_storage().data_ptr() for p in flat}
+    assert len(storages) == len(flat)  # each parameter owns its storage again
+
+
+def test_flat_adam_gradients_accumulate_in_its_buffer():
+    layer = nn.Linear(3, 2)
+    params = list(layer.parameters())
+    opt = FlatAdam(params, lr=0.1)
+    before = [p.detach().clone() for p in params]
+    opt.zero_grad()
+    layer(torch.ones(4, 3)).sum().backward()
+    assert float(opt.grad.abs().sum()) > 0  # backward wrote into the flat buffer
+    opt.step(max_norm=10.0)
+    assert all(not torch.equal(a, p) for a, p in zip(before, params, strict=True))
+
+
+def test_flat_adam_refuses_a_replaced_gradient():
+    layer = nn.Linear(3, 2)
+    opt = FlatAdam(list(layer.parameters()), lr=0.1)
+    layer.zero_grad(set_to_none=True)
+    layer(torch.ones(4, 3)).sum().backward()
+    with pytest.raises(RuntimeError, match="grad was replaced"):
+        opt.step(max_norm=1.0)

@@ -1,0 +1,86 @@
+"""Adam and gradient-norm clipping on one flat buffer: the timeVAE's training step.
+
+On a CPU the ``_foreach`` kernels of ``torch.optim.Adam(foreach=True)`` and
+``clip_grad_norm_`` loop over the parameters one at a time: eight element-wise
+operations on each of the timeVAE's 19 tensors every step, 0.55 ms of a 3.5 ms step on
+prey-only LV. Here the parameters and their gradients are views into two flat buffers,
+so each operation runs once over all of them (0.15 ms). The arithmetic is Adam's foreach path operation for operation
+(the same kernels in the same order, the clipping norm from the same per-tensor norms),
+so the training gives the same coefficients (a test holds it to the torch optimiser).
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+class FlatAdam:
+    """Adam (no weight decay, no amsgrad) with clipping, over parameters it flattens.
+
+    On construction the parameters become views of one buffer and their ``.grad``
+    views of another; :meth:`release` gives each its own storage again. Every
+    parameter must receive a gradient at every step (Adam's step count is shared).
+
+    Examples
+    --------
+    >>> import torch
+    >>> w = torch.nn.Parameter(torch.ones(3))
+    >>> opt = FlatAdam([w], lr=0.1)
+    >>> opt.zero_grad(); (w**2).sum().backward(); opt.step(max_norm=1.0)
+    >>> [round(v, 4) for v in w.tolist()]
+    [0.9, 0.9, 0.9]
+    >>> opt.release()
+    """
+
+    def __init__(self, params, lr: float, betas=(0.9, 0.999), eps: float = 1e-8):
+        self.params = list(params)
+        self.lr, (self.beta1, self.beta2), self.eps = lr, betas, eps
+        first = self.params[0]
+        with torch.no_grad():
+            self.flat = torch.cat([p.detach().reshape(-1) for p in self.params])
+        self.grad = torch.zeros_like(self.flat)
+        self.grads, offset = [], 0
+        for p in self.params:
+            n = p.numel()
+            p.data = self.flat[offset:offset + n].view_as(p)
+            p.grad = self.grad[offset:offset + n].view_as(p)
+            self.grads.append(p.grad)
+            offset += n
+        self.exp_avg = torch.zeros_like(self.flat)
+        self.exp_avg_sq = torch.zeros_like(self.flat)
+        self.steps = 0
+        self.device = first.device
+
+    def zero_grad(self) -> None:
+        """Zero the gradients in place (backward accumulates into the views)."""
+        self.grad.zero_()
+
+    @torch.no_grad()
+    def step(self, max_norm: float) -> None:
+        """Clip the gradients to total 2-norm ``max_norm``, then one Adam step."""
+        for p, g in zip(self.params, self.grads, strict=True):
+            if p.grad is not g:
+                raise RuntimeError("FlatAdam: a parameter's .grad was replaced (set to None "
+                                   "or assigned); zero gradients with FlatAdam.zero_grad.")
+        # clip_grad_norm_: the norm of the per-tensor norms, scaled by a clamped factor
+        norms = torch._foreach_norm(self.grads, 2)
+        total = torch.linalg.vector_norm(torch.stack(norms), 2)
+        self.grad.mul_(torch.clamp(max_norm / (total + 1e-6), max=1.0))
+        # torch.optim.Adam's _multi_tensor_adam (capturable=False), on the flat buffers
+        self.steps += 1
+        self.exp_avg.lerp_(self.grad, 1 - self.beta1)
+        self.exp_avg_sq.mul_(self.beta2)
+        self.exp_avg_sq.addcmul_(self.grad, self.grad, value=1 - self.beta2)
+        step = float(self.steps)
+        bias1 = 1 - self.beta1 ** step
+        bias2_sqrt = (1 - self.beta2 ** step) ** 0.5
+        denom = self.exp_avg_sq.sqrt()
+        denom.div_(bias2_sqrt)
+        denom.add_(self.eps)
+        self.flat.addcdiv_(self.exp_avg, denom, value=(self.lr / bias1) * -1)
+
+    def release(self) -> None:
+        """Give every parameter its own storage again and drop the gradients."""
+        for p in self.params:
+            p.data = p.data.clone()
+            p.grad = None
