@@ -274,57 +274,67 @@ def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
     ``decide(model)``, if given, runs between the phases, after the restoring checks."""
     history = []
     params = [p for p in model.parameters() if p.requires_grad]
+    data = (theta, xdot, weights, inputs, noise_var, free_rows)
     # Adam's arithmetic on one flat buffer (flat_adam.py): the same coefficients as
     # torch.optim.Adam(foreach=True), a tenth of a step less on a CPU
     opt = FlatAdam(params, lr=options.learning_rate)
-    total = options.support_steps + options.refit_steps
-    bar = tqdm(total=total, disable=not verbose, desc="dynamic SINDy", leave=False)
-    for phase, steps in ((1, options.support_steps), (2, options.refit_steps)):
-        if phase == 2:
-            model.restored = restore_terms(model, theta, xdot, weights, inputs,
-                                           options.threshold, free_rows)
-            model.restored += restore_absorbed_terms(model, theta, xdot, weights, inputs,
-                                                     options.threshold, free_rows)
-            if decide is not None:
-                decide(model)
-            opt.release()
-            opt = FlatAdam(params, lr=options.learning_rate / 3)
-        lr0 = opt.lr
-        for step in range(steps):
-            opt.lr = _cosine(step, steps, lr0, lr0 * 1e-2)
-            terms = loss_terms(model, theta, xdot, weights, inputs, noise_var,
-                               options.threshold, free_rows.to(theta.dtype))
-            warming = phase == 1 and step < options.warmup * steps
-            if phase == 1:
-                # warm-up: fit first, so a term whose time average is small but whose
-                # variation matters is not pruned before the generator learns it
-                sparsity = 0.0 if warming else options.sparsity
-                reg = sparsity * terms["l1"] + options.smoothness * terms["rough"]
-            else:
-                # Refit: smoothing follows the noise level (exact fits on clean data),
-                # capped at the normalised weight so rich variation is not flattened.
-                reg = options.refit_smoothness * terms["rough_bayes"] * terms["rough"]
-            loss = terms["mse"] + options.kl_weight * terms["kl"] + reg
-            opt.zero_grad()
-            loss.backward()
-            opt.step(max_norm=options.grad_clip)
-            if ((step + 1) % options.prune_every == 0 and not warming
-                    and (phase == 1 or step < steps // 2)):
-                # phase one: the threshold rises after the warm-up; phase two: terms the
-                # refit shrinks below the full threshold are dropped early in the phase.
-                start = options.warmup * steps
-                ramp = 1.0 if phase == 2 else (step + 1 - start) / max(
-                    1.0, (options.ramp - options.warmup) * steps)
-                _prune(model, inputs, options.threshold * min(1.0, ramp), free_rows)
-            record = {k: float(v.detach()) if torch.is_tensor(v) else v for k, v in terms.items()}
-            record.update(phase=phase, loss=float(loss.detach()))
-            history.append(record)
-            bar.update(1)
-            if verbose and step % 50 == 0:
-                bar.set_postfix(phase=phase, mse=f"{record['mse']:.2e}",
-                                terms=int(model.support.sum()))
-    opt.release()
-    bar.close()
+    bar = tqdm(total=options.support_steps + options.refit_steps, disable=not verbose,
+               desc="dynamic SINDy", leave=False)
+    try:
+        for phase, steps in ((1, options.support_steps), (2, options.refit_steps)):
+            if phase == 2:
+                model.restored = restore_terms(model, theta, xdot, weights, inputs,
+                                               options.threshold, free_rows)
+                model.restored += restore_absorbed_terms(model, theta, xdot, weights, inputs,
+                                                         options.threshold, free_rows)
+                if decide is not None:
+                    decide(model)
+                opt.release()
+                opt = FlatAdam(params, lr=options.learning_rate / 3)
+            history += _train_phase(model, opt, phase, steps, data, options, bar, verbose)
+    finally:  # the parameters own their storage again, whatever happened
+        opt.release()
+        bar.close()
+    return history
+
+
+def _train_phase(model, opt, phase, steps, data, options, bar, verbose):
+    """``steps`` optimiser steps of one phase (learning rate on a cosine schedule)."""
+    theta, xdot, weights, inputs, noise_var, free_rows = data
+    history, lr0 = [], opt.lr
+    for step in range(steps):
+        opt.lr = _cosine(step, steps, lr0, lr0 * 1e-2)
+        terms = loss_terms(model, theta, xdot, weights, inputs, noise_var,
+                           options.threshold, free_rows.to(theta.dtype))
+        warming = phase == 1 and step < options.warmup * steps
+        if phase == 1:
+            # warm-up: fit first, so a term whose time average is small but whose
+            # variation matters is not pruned before the generator learns it
+            sparsity = 0.0 if warming else options.sparsity
+            reg = sparsity * terms["l1"] + options.smoothness * terms["rough"]
+        else:
+            # Refit: smoothing follows the noise level (exact fits on clean data),
+            # capped at the normalised weight so rich variation is not flattened.
+            reg = options.refit_smoothness * terms["rough_bayes"] * terms["rough"]
+        loss = terms["mse"] + options.kl_weight * terms["kl"] + reg
+        opt.zero_grad()
+        loss.backward()
+        opt.step(max_norm=options.grad_clip)
+        if ((step + 1) % options.prune_every == 0 and not warming
+                and (phase == 1 or step < steps // 2)):
+            # phase one: the threshold rises after the warm-up; phase two: terms the
+            # refit shrinks below the full threshold are dropped early in the phase.
+            start = options.warmup * steps
+            ramp = 1.0 if phase == 2 else (step + 1 - start) / max(
+                1.0, (options.ramp - options.warmup) * steps)
+            _prune(model, inputs, options.threshold * min(1.0, ramp), free_rows)
+        record = {k: float(v.detach()) if torch.is_tensor(v) else v for k, v in terms.items()}
+        record.update(phase=phase, loss=float(loss.detach()))
+        history.append(record)
+        bar.update(1)
+        if verbose and step % 50 == 0:
+            bar.set_postfix(phase=phase, mse=f"{record['mse']:.2e}",
+                            terms=int(model.support.sum()))
     return history
 
 
