@@ -9,7 +9,8 @@ The modules, in the order a fit runs them:
    model (``evidence``), and trains;
 2. ``training`` (timeVAE) or ``sequential`` with ``sequential_model`` and
    ``sequential_options`` (HyperSINDy, window by window): the loss and the two phases,
-   support (pruning) then refit;
+   support (pruning) then refit; ``flat_adam`` is timeVAE's optimiser (torch's Adam and
+   gradient clipping, the same arithmetic, on one flat buffer);
 3. ``decisions``, between the phases: freezing variation that does not pay, restoring
    pruned terms the data still need, then adopting the exact model's structure;
 4. ``evidence``: the exact varying-coefficient model of the data (``vcm``: B-splines in
