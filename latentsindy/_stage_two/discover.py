@@ -21,7 +21,6 @@ from .._core.derivatives import AdaptiveSavitzkyGolay, noise_level, window_cappe
 from .._core.library import check_library, feature_expressions, fit_library
 from .._core.timing import recording, timed
 from .._stage_one.estimator import DynamicSINDy
-from ..generators import generator_class
 from .assemble import from_proposals, from_verdicts
 from .hypotheses import Context, evaluate, propose
 from .judge import judge_all
@@ -36,15 +35,6 @@ STAGE_ONE_SHARE = 0.5  # stage one also runs on segments at least this share of 
 # Nested hidden states (:mod:`.nested`): tried only when the best system with one hidden
 # state (or one and its rate) misses the data by far (``judge.NESTED_TRIGGER``).
 NESTED = True
-# Stage one's training inside a refined discovery (timeVAE), unless ``training`` names
-# the steps. Phase one keeps its full length: it decides which terms there are and
-# which vary, and discovery starts from that structure (shortened to 400 or 500 steps,
-# a driven oscillator at 10% noise lost its structure at every seed tried). The refit
-# makes DynamicSINDy's own coefficient series precise, and discovery does not use that
-# precision: stage two estimates every hidden series with its own smoother, refits
-# every coefficient by integrating the closed system against the data and judges on
-# held-out segments. So the refit is cut to 200 steps (README, "Speed").
-DISCOVERY_STEPS = {"support_steps": 800, "refit_steps": 200}
 
 
 def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_terms=None,
@@ -99,10 +89,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     closure_library : pysindy feature library, optional
         Candidates for the hidden equations (default polynomials of degree 2).
     generator, generator_options, training, differentiation_method, support
-        Passed to :class:`DynamicSINDy`. With ``refine`` (the default), a timeVAE's refit
-        phase is 200 steps instead of 700 unless ``training`` sets ``support_steps`` or
-        ``refit_steps`` (``DISCOVERY_STEPS``): stage two refits every coefficient by
-        integration, so stage one's own refit need not be precise.
+        Passed to :class:`DynamicSINDy`.
     n_samples : int
         Posterior samples of stage one's uncertainty band.
     refine : bool
@@ -178,8 +165,7 @@ def _discover(x_observed, library, t, feature_names, hidden_terms, hidden_names,
         if len(x) < STAGE_ONE_SHARE * len(trajs[0]):
             continue
         model = DynamicSINDy(library, generator=generator, generator_options=generator_options,
-                             training=_stage_one_training(training, generator, refine),
-                             differentiation_method=differentiation_method,
+                             training=training, differentiation_method=differentiation_method,
                              support=support if k == 0 else fits[0].support_,
                              device=device, verbose=verbose, seed=seed)
         fits.append(model.fit(x, tk, feature_names=names))
@@ -214,19 +200,6 @@ def _discover(x_observed, library, t, feature_names, hidden_terms, hidden_names,
         notes += (f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "
                   f"hidden state(s) found; names used: {list(result.hidden_names)}",)
     return dataclasses.replace(result, notes=result.notes + notes, data_use=use)
-
-
-def _stage_one_training(training, generator, refine):
-    """``training`` with :data:`DISCOVERY_STEPS` as the default step counts of a timeVAE
-    in a refined discovery; an options object, HyperSINDy and ``refine=False`` (where
-    stage one's band is the reported uncertainty) keep what they are given."""
-    if not refine or generator_class(generator).sequential:
-        return training
-    if training is None:
-        return dict(DISCOVERY_STEPS)
-    if isinstance(training, dict):
-        return {**DISCOVERY_STEPS, **training}
-    return training
 
 
 @timed("smoothing")

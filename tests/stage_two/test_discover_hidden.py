@@ -270,23 +270,3 @@ def test_oscillator_example_runs(tmp_path):
     assert r["result"].hidden_names == ("B",)
     assert r["extra"] == [] and r["missing"] == []
     assert max(r["errors"].values()) < 0.01
-
-
-def test_discovery_trains_stage_one_for_proposals_unless_told_otherwise():
-    """A refined discovery's timeVAE trains DISCOVERY_STEPS by default; named steps, an
-    options object, HyperSINDy and refine=False keep what they are given."""
-    from latentsindy._stage_one.training import TrainingOptions
-    from latentsindy._stage_two.discover import DISCOVERY_STEPS, _stage_one_training
-
-    assert DISCOVERY_STEPS == {"support_steps": 800, "refit_steps": 200}
-    assert _stage_one_training(None, "timevae", True) == DISCOVERY_STEPS
-    assert _stage_one_training({"threshold": 0.1}, "timevae", True) == {
-        **DISCOVERY_STEPS, "threshold": 0.1}
-    assert _stage_one_training({"refit_steps": 50}, "timevae", True) == {
-        "support_steps": 800, "refit_steps": 50}
-    given = TrainingOptions()
-    assert _stage_one_training(given, "timevae", True) is given
-    assert _stage_one_training(None, "timevae", False) is None
-    assert _stage_one_training(None, "hypersindy", True) is None
-    with pytest.raises(ValueError, match="generator must be one of"):
-        _stage_one_training(None, "vae", True)
