@@ -203,6 +203,18 @@ def restore_terms(model, theta, xdot, weights, inputs, threshold, free_rows,
     return restored
 
 
+def between_phases(model, theta, xdot, weights, inputs, threshold, free_rows, decide=None):
+    """The checks both generators run between support and refit: pruned terms the data
+    still need (:func:`restore_terms`) and terms absorbed into a varying coefficient
+    (:func:`restore_absorbed_terms`) come back, recorded in ``model.restored``; then
+    ``decide(model)``, if given (the exact model's structure)."""
+    model.restored = restore_terms(model, theta, xdot, weights, inputs, threshold, free_rows)
+    model.restored += restore_absorbed_terms(model, theta, xdot, weights, inputs, threshold,
+                                             free_rows)
+    if decide is not None:
+        decide(model)
+
+
 def _explained(gram, cross, cols):
     """Weighted sum of squares explained by a least-squares fit on ``cols``, and the fit."""
     if not cols:

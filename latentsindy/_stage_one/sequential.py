@@ -24,7 +24,7 @@ from tqdm.auto import tqdm
 
 from .._core.timing import timed
 from ..generators.hypersindy import detach_state
-from .decisions import freeze_constant_terms, restore_absorbed_terms, restore_terms
+from .decisions import between_phases, freeze_constant_terms
 from .sequential_model import SequentialCoefficientModel, window_loss, windowed_constants
 from .sequential_options import MODES, SequentialTrainingOptions
 
@@ -88,12 +88,8 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
             model.log_alpha.requires_grad_(False)
             model.log_alpha_var.requires_grad_(False)
             freeze_constant_terms(model, theta, xdot, weights, inputs, var_cost, free_rows)
-            model.restored = restore_terms(model, theta, xdot, weights, inputs,
-                                           options.threshold, free_rows)
-            model.restored += restore_absorbed_terms(model, theta, xdot, weights, inputs,
-                                                     options.threshold, free_rows)
-            if decide is not None:
-                decide(model)
+            between_phases(model, theta, xdot, weights, inputs, options.threshold, free_rows,
+                           decide)
             if options.mode == "online":
                 history += _online_pass(model, theta, xdot, weights, inputs, noise_var, starts,
                                         window, options, bayes, bar)

@@ -11,7 +11,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from .._core.timing import timed
-from .decisions import restore_absorbed_terms, restore_terms
+from .decisions import between_phases
 from .flat_adam import FlatAdam
 
 _EPS = torch.finfo(torch.float32).eps
@@ -283,12 +283,8 @@ def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
     try:
         for phase, steps in ((1, options.support_steps), (2, options.refit_steps)):
             if phase == 2:
-                model.restored = restore_terms(model, theta, xdot, weights, inputs,
-                                               options.threshold, free_rows)
-                model.restored += restore_absorbed_terms(model, theta, xdot, weights, inputs,
-                                                         options.threshold, free_rows)
-                if decide is not None:
-                    decide(model)
+                between_phases(model, theta, xdot, weights, inputs, options.threshold,
+                               free_rows, decide)
                 opt.release()
                 opt = FlatAdam(params, lr=options.learning_rate / 3)
             history += _train_phase(model, opt, phase, steps, data, options, bar, verbose)
