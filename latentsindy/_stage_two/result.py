@@ -104,14 +104,20 @@ class HiddenComparison:
     scale : ndarray, shape (n_hidden, n_true)
     offset : ndarray, shape (n_true,)
         The map: ``true ~ hidden @ scale + offset``.
-    observed_scale : ndarray, shape (n_observed, n_true), or None
-        With ``with_observed=True``, the observed states' part of the map.
+    observed_scale : ndarray, shape (len(observed_terms), n_true), or None
+        With ``with_observed=True``, the observed part of the map, one row per entry of
+        ``observed_terms``.
+    observed_terms : tuple of sympy expressions
+        With ``with_observed=True``, what the map may add: the observed states, then
+        the observed terms the hidden states absorb (see
+        :meth:`HiddenDiscovery.compare_hidden`); empty otherwise.
     """
 
     r2: np.ndarray
     scale: np.ndarray
     offset: np.ndarray
     observed_scale: np.ndarray | None = None
+    observed_terms: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -285,8 +291,13 @@ class HiddenDiscovery:
 
         A hidden state is defined by the coefficient it carries, so it can be the true
         variable shifted by observed states (Rossler with z hidden: ``xdot = h`` with
-        ``h = -y - z``). ``with_observed=True`` lets the map use the observed states too
-        (``true ~ hidden @ scale + observed @ observed_scale + offset``).
+        ``h = -y - z``), and by the observed terms its equation shows beside it: a state
+        that is the coefficient of ``f`` in ``ds/dt`` is the true coefficient less
+        ``g / f`` for every observed-only term ``g`` of ``ds/dt`` that ``f`` divides
+        (Van der Pol seen through x: ``xdot = h + mu x - mu x^3 / 3`` with ``h = y -
+        mu (x - x^3 / 3)``). ``with_observed=True`` lets the map use the observed states
+        and those terms (``true ~ hidden @ scale + features @ observed_scale + offset``,
+        the features named in ``observed_terms``).
         """
         truth = np.asarray(true_hidden, dtype=float)
         truth = truth[:, None] if truth.ndim == 1 else truth
@@ -295,14 +306,42 @@ class HiddenDiscovery:
                              f"{self.hidden.shape[0]}; pass the series on the same times.")
         if not isinstance(with_observed, bool):
             raise TypeError(f"with_observed must be True or False; got {with_observed!r}.")
-        extra = self.observed if with_observed else np.zeros((len(truth), 0))
-        design = np.hstack([self.hidden, extra, np.ones((len(truth), 1))])
+        terms = self._absorbed_observed_terms() if with_observed else ()
+        symbols = self.symbols[:len(self.observed_names)]
+        extra = [np.broadcast_to(sp.lambdify(symbols, term, "numpy")(*self.observed.T),
+                                 (len(truth),)) for term in terms]
+        design = np.column_stack([self.hidden, *extra, np.ones(len(truth))])
         coef, *_ = np.linalg.lstsq(design, truth, rcond=None)
         resid = truth - design @ coef
         r2 = 1 - np.sum(resid**2, axis=0) / np.sum((truth - truth.mean(axis=0)) ** 2, axis=0)
         n_h = self.hidden.shape[1]
         return HiddenComparison(r2, coef[:n_h], coef[-1],
-                                coef[n_h:-1] if with_observed else None)
+                                coef[n_h:-1] if with_observed else None, terms)
+
+    def _absorbed_observed_terms(self) -> tuple:
+        """The observed states, then ``g / f`` for each observed-only term ``g`` beside a
+        hidden state's carrier term ``f h`` in its equation, where ``f`` divides ``g``
+        (built from the terms, see :meth:`compare_hidden`)."""
+        observed = self.symbols[:len(self.observed_names)]
+        out = list(observed)
+        for hidden in self.hidden_states:
+            if hidden.rate_of is not None or not hidden.terms:
+                continue
+            state = hidden.terms[0][0]
+            h = sp.Symbol(hidden.name, real=True)
+            # the carrier from the defining term (carrier * h, value 1), not from its name
+            carrier = next((sp.cancel(t.feature / h) for t in self.terms
+                            if t.state == state and t.fixed and t.feature.has(h)), None)
+            if carrier is None or not carrier.free_symbols <= set(observed) | {sp.S.One}:
+                continue
+            for term in self.terms:
+                if (term.state != state or term.fixed or term.value == 0
+                        or not term.feature.free_symbols <= set(observed)):
+                    continue
+                quotient, remainder = sp.div(term.feature, carrier, *observed)
+                if remainder == 0 and quotient.free_symbols and quotient not in out:
+                    out.append(quotient)
+        return tuple(out)
 
     def to_latex(self) -> str:
         """The equations as a LaTeX ``aligned`` block."""

@@ -1,5 +1,7 @@
 """Stage two: discover_hidden on the tutorials, the result object and its checks."""
 
+import dataclasses
+import math
 import sys
 from pathlib import Path
 
@@ -9,7 +11,7 @@ import pytest
 import sympy as sp
 import torch
 
-from latentsindy import HiddenDiscovery, HiddenState, discover_hidden, systems
+from latentsindy import HiddenDiscovery, HiddenState, Term, discover_hidden, systems
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "examples"))
 import lorenz_from_x  # noqa: E402
@@ -135,6 +137,26 @@ def test_summary_and_latex(lv):
     assert len(result.equations) == 2
     assert result.coefficient("x", "h*x") == 1.0
     assert result.coefficient("h", "x**2") == 0.0
+
+
+def test_compare_hidden_map_uses_the_terms_a_hidden_state_absorbs(lv):
+    """A hidden state that is the coefficient of x in dx/dt is the true coefficient less
+    g / x for every observed term g of dx/dt that x divides (Van der Pol seen through x:
+    h = y - mu (x - x^3 / 3)). With x^3 and a constant beside x h, the map may use x and
+    x^2 (not 1 / x) and recovers 2 h + 0.7 x^2 + 1 exactly; without them it cannot."""
+    _, result = lv
+    x = X
+    extra = (Term("x", x**3, 0.4, math.nan, False), Term("x", sp.Integer(1), 0.1, math.nan,
+                                                         False))
+    shown = dataclasses.replace(result, terms=result.terms + extra)
+    truth = 2.0 * shown.hidden[:, 0] + 0.7 * shown.observed[:, 0] ** 2 + 1.0
+    cmp = shown.compare_hidden(truth, with_observed=True)
+    assert cmp.observed_terms == (x, x**2)
+    np.testing.assert_allclose(cmp.r2, [1.0], atol=1e-12)
+    np.testing.assert_allclose([cmp.scale[0, 0], *cmp.observed_scale[:, 0], cmp.offset[0]],
+                               [2.0, 0.0, 0.7, 1.0], atol=1e-8)
+    assert result.compare_hidden(truth, with_observed=True).r2[0] < 0.999
+    assert result.compare_hidden(truth, with_observed=True).observed_terms == (x,)
 
 
 def test_compare_hidden_length_mismatch(lv):
