@@ -56,10 +56,12 @@ def _feature(name, symbols):
     return expr
 
 
-def truth_in_variables(draw, defs, hidden_names):
+def truth_in_variables(draw, defs, hidden_names, found=None):
     """The true closed system in the observed states and the discovered hidden states
     (sympy, numeric coefficients), or None when the definitions do not map onto the
-    true hidden variables (wrong structure)."""
+    true hidden variables (wrong structure). A hidden state shifted by terms the truth
+    lacks (:func:`_coefficient`) needs the ``found`` system (its right-hand sides) to
+    fix the shifts."""
     rhs, hidden = draw.truth["rhs"], draw.truth["hidden"]
     obs_syms = [sp.Symbol(n, real=True) for n in draw.observed_names]
     phis = hidden_definitions(draw, defs, hidden_names)
@@ -73,6 +75,25 @@ def truth_in_variables(draw, defs, hidden_names):
     out = {n: rhs[x].subs(sol) for n, x in zip(draw.observed_names, obs_syms, strict=True)}
     for name, phi in zip(hidden_names, phis, strict=True):
         out[name] = _rate(phi, rhs, hidden + obs_syms).subs(sol)
+    if _shifts(out.values()):
+        symbols = obs_syms + us
+        shifts = None if found is None else _solve_shifts(out, found, symbols)
+        if shifts is None:
+            return None
+        out = {n: sp.expand(e.subs(shifts)) for n, e in out.items()}
+    return out
+
+
+def hidden_shift_terms(draw, defs, hidden_names, found):
+    """The observed-state functions the hidden states were shifted by (``m / mono`` of
+    :func:`_coefficient`), for the R^2 map; empty when none was."""
+    phis = hidden_definitions(draw, defs, hidden_names) or []
+    out = []
+    for phi in phis:
+        for shift in _shifts([phi]):
+            term = sp.expand(-phi.coeff(shift))
+            if term.free_symbols and term not in out:
+                out.append(term)
     return out
 
 
@@ -113,10 +134,17 @@ def hidden_definitions(draw, defs, hidden_names):
     return phis
 
 
+SHIFT = "_shift"  # prefix of the unknown shifts (see _coefficient)
+
+
 def _coefficient(poly, mono, others, variables):
     """The coefficient of monomial ``mono`` in ``poly``; with ``others`` (the found
     equation's terms beside it), plus every term divisible by ``mono`` that is not one
-    of them, divided by it."""
+    of them, divided by it, and minus ``s_k m / mono`` for every term ``m`` beside it
+    that ``mono`` divides and the truth lacks: the hidden state gave that term to the
+    equation (Van der Pol found as ``dx/dt = h + mu x - mu x^3 / 3``: ``h = y - s_0 x -
+    s_1 x^3``). The shifts ``s_k`` are unknowns, fixed later by the found structure
+    (:func:`_solve_shifts`)."""
     terms = poly.as_dict()
     if others is None:
         return sp.expand(terms.get(mono, sp.Integer(0)))
@@ -127,7 +155,36 @@ def _coefficient(poly, mono, others, variables):
         rest = tuple(a - b for a, b in zip(m, mono, strict=True))
         if min(rest) >= 0 and (m == mono or m not in shown):
             out += c * sp.Mul(*[v**e for v, e in zip(variables, rest, strict=True)])
+    for m in sorted(shown):
+        rest = tuple(a - b for a, b in zip(m, mono, strict=True))
+        if min(rest) >= 0 and m != mono and terms.get(m, 0) == 0:
+            shift = sp.Dummy(SHIFT)
+            out -= shift * sp.Mul(*[v**e for v, e in zip(variables, rest, strict=True)])
     return sp.expand(out)
+
+
+def _shifts(exprs):
+    return sorted({s for e in exprs for s in e.free_symbols
+                   if isinstance(s, sp.Dummy) and s.name == SHIFT}, key=sp.default_sort_key)
+
+
+def _solve_shifts(truth, found, symbols):
+    """The shifts that make every term the found system lacks vanish from the truth in
+    its variables (a linear or polynomial system in the shifts and the parameters), or
+    None when no single solution does."""
+    shifts = _shifts(truth.values())
+    if not shifts:
+        return {}
+    eqs = []
+    for name, expr in truth.items():
+        have = set(sp.Poly(sp.expand(found[name]), *symbols).monoms())
+        for mono, coef in sp.Poly(sp.expand(expr), *symbols).as_dict().items():
+            if mono not in have:
+                eqs.append(coef)
+    sol = sp.solve(eqs, shifts, dict=True) if eqs else []
+    if len(sol) != 1 or any(s not in sol[0] for s in shifts):
+        return None
+    return sol[0]
 
 
 def _rate(phi, rhs, variables):
@@ -190,8 +247,16 @@ def r2_hidden(hidden, truth, observed=None):
 def score(result, draw):
     """Metrics of one discover_hidden result against its draw."""
     out = score_structure(result, draw)
-    out["r2"] = r2_hidden(np.asarray(result.hidden), draw.hidden_true,
-                          draw.observed if draw.with_observed else None)
+    observed = draw.observed if draw.with_observed else None
+    if observed is not None:  # and the terms a hidden state was shifted by
+        shifted = hidden_shift_terms(draw, definitions(result), list(result.hidden_names),
+                                     result.rhs) if len(result.hidden_names) == len(
+                                         draw.truth["hidden"]) else []
+        symbols = [sp.Symbol(n, real=True) for n in draw.observed_names]
+        observed = np.column_stack([observed] + [
+            np.broadcast_to(sp.lambdify(symbols, term, "numpy")(*observed.T),
+                            (len(observed),)) for term in shifted])
+    out["r2"] = r2_hidden(np.asarray(result.hidden), draw.hidden_true, observed)
     return out
 
 
@@ -202,7 +267,8 @@ def score_structure(result, draw):
     hidden_names = list(result.hidden_names)
     n_true = len(draw.truth["hidden"])
     out = {"n_hidden": len(hidden_names), "n_hidden_true": n_true}
-    truth = truth_in_variables(draw, defs, hidden_names) if len(defs) == n_true else None
+    truth = (truth_in_variables(draw, defs, hidden_names, result.rhs)
+             if len(defs) == n_true else None)
     if truth is None:
         out.update(exact=False, extra=np.nan, missing=np.nan, error=np.inf,
                    observed_error=np.inf)

@@ -75,7 +75,8 @@ def test_ten_percent_noise_finishes_and_reports():
     assert "held-out score" in result.summary()
 
 
-@pytest.mark.parametrize("family", ["lorenz_x", "driven_oscillator", "epidemic"])
+@pytest.mark.parametrize("family", ["lorenz_x", "driven_oscillator", "epidemic",
+                                    "van_der_pol", "brusselator", "rossler"])
 def test_new_family_truth_holds_in_the_natural_variables(family):
     """The benchmark's truth, moved into the variables latentsindy reports (a hidden
     state inside another's equation for Lorenz from x), is the system the noise-free
@@ -161,3 +162,28 @@ def test_a_rate_follows_its_state_through_the_observed_states():
     phis = hidden_definitions(d, definitions(found), ["h0", "g0"])
     assert sp.expand(phis[0] - (u - c * y)) == 0
     assert sp.expand(phis[1] - (v - c * (u - c * y))) == 0
+
+
+def test_a_hidden_state_shifted_by_terms_the_truth_lacks():
+    """Van der Pol (dx/dt = y, dy/dt = mu (1 - x^2) y - x) found in Lienard form, dx/dt =
+    h + a x + b x^3 with dh/dt = -x: h = y - s0 x - s1 x^3 with shifts the found
+    structure fixes (s0 = mu, s1 = -mu / 3), so the truth in h is exactly the found
+    system. Found without the x^3 term, no shift removes the truth's x^2 h term: not the
+    truth in any variable."""
+    import sympy as sp
+    from _scoring import definitions, hidden_shift_terms, truth_in_variables
+
+    x, y, h, mu = sp.symbols("x y h mu", real=True)
+    d = SimpleNamespace(truth={"rhs": {x: y, y: mu * (1 - x**2) * y - x}, "hidden": [y]},
+                        observed_names=("x",))
+    lienard = {"x": {h: 1.0, x: 1.5, x**3: -0.5}, "h": {x: -1.0}}
+    found = _found(lienard, [("h", ("x", "1"), None)])
+    found.rhs = {n: sum(c * f for f, c in eq.items()) for n, eq in lienard.items()}
+    truth = truth_in_variables(d, definitions(found), ["h"], found.rhs)
+    assert sp.expand(truth["x"] - (h + mu * x - mu * x**3 / 3)) == 0
+    assert sp.expand(truth["h"] + x) == 0
+    assert hidden_shift_terms(d, definitions(found), ["h"], found.rhs) == [x, x**3]
+    short = {"x": {h: 1.0, x: 1.5}, "h": {x: -1.0}}
+    found = _found(short, [("h", ("x", "1"), None)])
+    found.rhs = {n: sum(c * f for f, c in eq.items()) for n, eq in short.items()}
+    assert truth_in_variables(d, definitions(found), ["h"], found.rhs) is None
