@@ -191,6 +191,14 @@ def _discover(x_observed, library, t, feature_names, hidden_terms, hidden_names,
         with single_thread():
             ordered, uncertain = judge_all(proposals, ctx, RefineOptions(device=device), max_hidden,
                                            NESTED)
+            if not ordered:
+                raise ValueError(
+                    f"None of the {len(proposals)} candidate closed systems could be fitted "
+                    "by integration (each blew up or failed from its estimated hidden "
+                    f"series; varying terms {pairs}), so no closed system was found. The "
+                    "library may lack the terms that carry the hidden state (a constant: "
+                    "include_bias=True), or the closure_library those of its law; "
+                    "refine=False returns the unchecked candidates.")
             result = from_verdicts(ordered, uncertain, ctx, first, hidden_names)
     else:
         stds = {ij: first.std[:, ij[0], ij[1]] for ij in index}
