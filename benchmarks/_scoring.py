@@ -84,7 +84,7 @@ def truth_in_variables(draw, defs, hidden_names, found=None):
     return out
 
 
-def hidden_shift_terms(draw, defs, hidden_names, found):
+def hidden_shift_terms(draw, defs, hidden_names):
     """The observed-state functions the hidden states were shifted by (``m / mono`` of
     :func:`_coefficient`), for the R^2 map; empty when none was."""
     phis = hidden_definitions(draw, defs, hidden_names) or []
@@ -249,9 +249,8 @@ def score(result, draw):
     out = score_structure(result, draw)
     observed = draw.observed if draw.with_observed else None
     if observed is not None:  # and the terms a hidden state was shifted by
-        shifted = hidden_shift_terms(draw, definitions(result), list(result.hidden_names),
-                                     result.rhs) if len(result.hidden_names) == len(
-                                         draw.truth["hidden"]) else []
+        shifted = (hidden_shift_terms(draw, definitions(result), list(result.hidden_names))
+                   if len(result.hidden_names) == len(draw.truth["hidden"]) else [])
         symbols = [sp.Symbol(n, real=True) for n in draw.observed_names]
         observed = np.column_stack([observed] + [
             np.broadcast_to(sp.lambdify(symbols, term, "numpy")(*observed.T),
