@@ -88,11 +88,19 @@ def hidden_shift_terms(draw, defs, hidden_names):
     """The observed-state functions the hidden states were shifted by (``m / mono`` of
     :func:`_coefficient`), for the R^2 map; empty when none was."""
     phis = hidden_definitions(draw, defs, hidden_names) or []
+    return observed_shift_terms(phis, [sp.Symbol(n, real=True) for n in draw.observed_names])
+
+
+def observed_shift_terms(phis, observed):
+    """The terms multiplying each shift in the hidden definitions ``phis`` that are
+    functions of the ``observed`` symbols alone (a shift's coefficient can hold true
+    hidden variables or other shifts when the found structure is wrong (Lorenz from x
+    at 5-10% noise): those are not observed series, so not in the map)."""
     out = []
     for phi in phis:
         for shift in _shifts([phi]):
             term = sp.expand(-phi.coeff(shift))
-            if term.free_symbols and term not in out:
+            if term.free_symbols and term.free_symbols <= set(observed) and term not in out:
                 out.append(term)
     return out
 

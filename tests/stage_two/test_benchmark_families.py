@@ -187,3 +187,17 @@ def test_a_hidden_state_shifted_by_terms_the_truth_lacks():
     found = _found(short, [("h", ("x", "1"), None)])
     found.rhs = {n: sum(c * f for f, c in eq.items()) for n, eq in short.items()}
     assert truth_in_variables(d, definitions(found), ["h"], found.rhs) is None
+
+
+def test_only_observed_shift_terms_enter_the_r2_map():
+    """A shift's coefficient that holds a true hidden variable or another shift (a wrong
+    structure) is no observed series: left out of the R^2 map (it crashed the map's
+    least squares with sympy objects on Lorenz from x at 5-10% noise)."""
+    import sympy as sp
+    from _scoring import SHIFT, observed_shift_terms
+
+    x, y, h = sp.symbols("x y h", real=True)
+    s0, s1, s2 = (sp.Dummy(SHIFT) for _ in range(3))
+    phi = h - s0 * x**2 - s1 * y - s2 * (x + s0)
+    assert observed_shift_terms([phi], [x]) == [x**2]
+    assert observed_shift_terms([phi], [x, y]) == [x**2, y]
