@@ -27,7 +27,7 @@ from .nested import nested_proposals, nested_system, shifted_nested_system
 from .refine import Fit, Problem, RefineOptions, cross_validate
 from .shooting import BlowUp
 from .smoother import HiddenFit, single_term
-from .terms import ambiguities, select_terms, weak_terms
+from .terms import ambiguities, missing_terms, select_terms, weak_terms
 
 RATE_TRIGGER = 1.5  # best misfit (noise variances) above which rate states are tried
 # Best misfit above which a hidden state inside a hidden state's equation is tried: the
@@ -429,6 +429,17 @@ def weakly_supported_terms(verdict: Verdict):
         return weak_terms(verdict.problem, verdict.fit, verdict.candidates)
     except BlowUp:  # not checked is a doubt, not a pass
         return [(None, np.nan, np.nan)]
+
+
+def nearly_needed_terms(verdict: Verdict):
+    """Terms left out of the chosen system that the data nearly call for
+    (:func:`.terms.missing_terms`): [(cell, misfit change, price)]."""
+    if not verdict.scored or verdict.candidates is None:
+        return []
+    try:
+        return missing_terms(verdict.problem, verdict.fit, verdict.candidates)
+    except BlowUp:
+        return []
 
 
 def rank(verdicts):

@@ -151,9 +151,11 @@ class HiddenDiscovery:
         Checks the reported system failed, each a sentence saying what it means: it
         could not be scored or does not reproduce held-out data down to their noise, its
         refinement did not converge, a hidden-equation coefficient is within two
-        standard errors of zero, or a term can be exchanged for another with almost no
-        loss of fit. Without refinement (``refine=False``) nothing was checked, and that
-        is the doubt. Empty when every check passed.
+        standard errors of zero, a term can be exchanged for another with almost no
+        loss of fit, a term is supported only weakly, a term left out is nearly called
+        for, or the system integrated over a whole recording blows up. Without
+        refinement (``refine=False``) nothing was checked, and that is the doubt.
+        Empty when every check passed.
     notes : tuple of str
         Remarks that are not doubts (a hidden state with no dynamics of its own, names
         that could not be used).

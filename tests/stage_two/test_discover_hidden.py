@@ -163,16 +163,16 @@ def test_a_law_that_blows_up_over_the_recording_is_a_doubt(lv):
     """The free run: the found LV law integrated over the whole recording stays bounded
     (no doubt); the same result with dh/dt = h^2 (h0 > 0 blows up in finite time, at
     t = 1 / h0, inside the recording) gets the doubt that says so."""
-    from latentsindy._stage_two.assemble import _free_run
+    from latentsindy._stage_two.checks import free_run_doubt
 
     _, result = lv
     trajectories = [np.hstack([o, h]) for o, h in zip(result.all_observed, result.all_hidden,
                                                        strict=True)]
-    assert _free_run(result, trajectories) == ()
+    assert free_run_doubt(result, trajectories) == ()
     assert result.hidden[0, 0] > 1.0 / (result.times[-1] - result.times[0])
     law = tuple(t for t in result.terms if t.state != "h") + (
         Term("h", H**2, 1.0, math.nan, False),)
-    doubt = _free_run(dataclasses.replace(result, terms=law), trajectories)
+    doubt = free_run_doubt(dataclasses.replace(result, terms=law), trajectories)
     assert len(doubt) == 1 and "the closed system blows up" in doubt[0]
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pysindy as ps
 import sympy as sp
 
-from latentsindy._stage_two.assemble import _first_integral
+from latentsindy._stage_two.checks import first_integral_doubt
 from latentsindy._stage_two.field import ParametricSystem
 from latentsindy._stage_two.first_integral import integrated_proposal, integrated_system
 
@@ -96,8 +96,8 @@ def test_a_non_polynomial_observed_law_has_no_first_integral_restatement():
 
 def test_a_winner_with_a_first_integral_is_a_doubt():
     verdict, _ = rate_verdict({R: A, H * R: 2 * B})
-    (doubt,) = _first_integral(verdict, ["h", "h_rate"])
+    (doubt,) = first_integral_doubt(verdict, ["h", "h_rate"])
     assert "dh_rate/dt is the time derivative of a first-order law for h" in doubt
     assert "not preferred" in doubt
     verdict, _ = rate_verdict({R: A, R * X: 0.2})
-    assert _first_integral(verdict, ["h", "h_rate"]) == ()
+    assert first_integral_doubt(verdict, ["h", "h_rate"]) == ()

@@ -9,17 +9,29 @@ import numpy as np
 import pytest
 import sympy as sp
 import torch
+from scipy.integrate import solve_ivp
 
 from latentsindy import systems
 from latentsindy._stage_two import judge
 from latentsindy._stage_two import terms as terms_module
-from latentsindy._stage_two.assemble import _segment_constants, _weak, doubts
+from latentsindy._stage_two.checks import (
+    doubts,
+    missing_doubts,
+    segment_constant_doubts,
+    weak_doubts,
+)
 from latentsindy._stage_two.field import FeatureMap, ParametricSystem
 from latentsindy._stage_two.judge import rank
 from latentsindy._stage_two.refine import JOIN, Fit, Problem, cross_validate
 from latentsindy._stage_two.result import Refinement, Term
 from latentsindy._stage_two.shooting import BlowUp
-from latentsindy._stage_two.terms import AMBIGUITY, ambiguities, select_terms, weak_terms
+from latentsindy._stage_two.terms import (
+    AMBIGUITY,
+    ambiguities,
+    missing_terms,
+    select_terms,
+    weak_terms,
+)
 
 X, Y, Z, H = sp.symbols("x y z h", real=True)
 A, B, G, D = 1.0, 0.1, 1.5, 0.075
@@ -413,7 +425,7 @@ def test_weak_term_sentences_say_what_was_not_checked():
     system = ParametricSystem(("x", "h"), 1, LV_FEATURES, np.zeros((2, 5)),
                               np.zeros((2, 5), dtype=bool))
     found = [((1, 1), 3.0, 20.0), ((1, 2), math.nan, 20.0), (None, math.nan, math.nan)]
-    weak, failed, blown = _weak(found, system, {}, {})
+    weak, failed, blown = weak_doubts(found, system, {}, {})
     assert "support 1 in dh/dt only weakly (dropping it raises the misfit by 3" in weak
     assert "support of h in dh/dt could not be checked (refitting without it failed)" in failed
     assert "could not be checked (refitting without a term blew up)" in blown
@@ -429,13 +441,79 @@ def test_a_constant_hidden_state_that_differs_between_segments_is_a_doubt():
         trs = [np.column_stack([np.zeros(5), np.full(5, v)]) for v in values]
         return trs, [np.full((5, 2), error) for _ in values]
 
-    assert _segment_constants(terms, ["r"], 1, *segments([0.5, 0.8, 1.1])) != ()
-    found = _segment_constants(terms, ["r"], 1, *segments([0.5, 0.8, 1.1]))[0]
+    assert segment_constant_doubts(terms, ["r"], 1, *segments([0.5, 0.8, 1.1])) != ()
+    found = segment_constant_doubts(terms, ["r"], 1, *segments([0.5, 0.8, 1.1]))[0]
     assert "r has no dynamics of its own but takes different constant values" in found
     assert "0.5, 0.8, 1.1" in found
-    assert _segment_constants(terms, ["r"], 1, *segments([0.5, 0.51, 0.5])) == ()
-    assert _segment_constants(terms, ["r"], 1, *segments([0.5])) == ()
+    assert segment_constant_doubts(terms, ["r"], 1, *segments([0.5, 0.51, 0.5])) == ()
+    assert segment_constant_doubts(terms, ["r"], 1, *segments([0.5])) == ()
     moving = terms + (Term("r", h, -0.3, 0.01, False),)
-    assert _segment_constants(moving, ["r"], 1, *segments([0.5, 0.8])) == ()
-    (blown,) = _segment_constants(terms, ["r"], 1, *segments([0.5, np.nan, 0.5]))
+    assert segment_constant_doubts(moving, ["r"], 1, *segments([0.5, 0.8])) == ()
+    (blown,) = segment_constant_doubts(terms, ["r"], 1, *segments([0.5, np.nan, 0.5]))
     assert "its constant could not be read in every recording" in blown
+
+
+def _lv_with_small_term(eps, noise=0.01, n_times=1500):
+    """x' = x h, h' = the LV hidden law + eps h x^2 (x seen with ``noise``), and the
+    problem of fitting the LV law without h x^2 (the candidate that may be added)."""
+    row = TRUTH_ROW.copy()
+    row[4] = eps
+    t = np.linspace(0.0, 15.0, n_times)
+    states = solve_ivp(lambda _, s: [s[0] * s[1], row @ [s[0] * s[1], 1.0, s[1], s[0],
+                                                         s[1] * s[0] ** 2]],
+                       (0.0, 15.0), [10.0, A - B * 5.0], t_eval=t, rtol=1e-10,
+                       atol=1e-10).y.T
+    observed = states[:, :1] + noise * states[:, 0].std() * \
+        np.random.default_rng(0).standard_normal((n_times, 1))
+    problem = Problem(lv_system(TRUTH_ROW), [t], [observed], [states])
+    candidates = np.zeros((2, 5), dtype=bool)
+    candidates[1, 4] = True
+    return problem, problem.fit(), candidates
+
+
+def test_missing_terms_name_a_term_the_data_call_for():
+    """Fitted without h x^2: where the law has none, h x^2 is not called for (its
+    addition misses the criterion by more than the margin); where the law has
+    1e-4 h x^2, adding it lowers the misfit by far more than a term costs: named, with
+    its exact change. The margin decides: raised above the shortfall, the absent term
+    is named too. A refit that fails does not count (the fit without the term stands)."""
+    problem, fit, candidates = _lv_with_small_term(0.0)
+    assert missing_terms(problem, fit, candidates) == []
+    strong = _lv_with_small_term(1e-4)
+    (cell, change, price), = missing_terms(*strong)
+    assert cell == (1, 4) and change < -10 * price
+    added = strong[0].fit(lv_system(TRUTH_ROW + [0, 0, 0, 0, 1e-4],
+                                    free_row=np.ones(5, dtype=bool)))
+    assert change == pytest.approx((added.data_cost - strong[1].data_cost)
+                                   / max(strong[1].residual_variance, 1.0), rel=0.02)
+    model = terms_module._Quadratic(problem, fit, candidates)
+    (gain, _, _), = model.additions(terms_module._price(problem, fit, candidates),
+                                    max(fit.residual_variance, 1.0))
+    assert -gain > terms_module.MARGIN  # the absent term's predicted shortfall
+    original = terms_module.MARGIN
+    try:
+        terms_module.MARGIN = -gain + 1.0
+        (cell, change, price), = missing_terms(problem, fit, candidates)
+        assert cell == (1, 4) and change < 0 and change + price < terms_module.MARGIN
+
+        def fails(*args):
+            raise np.linalg.LinAlgError("singular")
+
+        terms_module._exact_refit, saved = fails, terms_module._exact_refit
+        try:
+            assert missing_terms(problem, fit, candidates) == []
+        finally:
+            terms_module._exact_refit = saved
+    finally:
+        terms_module.MARGIN = original
+
+
+def test_missing_term_sentences():
+    system = ParametricSystem(("x", "h"), 1, LV_FEATURES, np.zeros((2, 5)),
+                              np.zeros((2, 5), dtype=bool))
+    nearly, needed = missing_doubts([((1, 1), -10.1, 11.7), ((1, 3), -40.0, 11.7)], system, {}, {})
+    assert ("1 in dh/dt was left out, but the data nearly call for it (adding it lowers "
+            "the misfit by 10.1 residual variances, within 2 of the 11.7") in nearly
+    assert "x in dh/dt was left out, but the data call for it" in needed
+    five = [((1, c), -10.0, 11.0) for c in range(5)]
+    assert missing_doubts(five, system, {}, {})[-1].startswith("2 more left-out terms")

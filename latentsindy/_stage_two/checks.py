@@ -1,0 +1,230 @@
+"""The checks on the chosen system: each failed check is a sentence (a doubt) saying
+what failed and what to try. Held-out score, convergence and significance
+(:func:`doubts`), terms exchangeable, weak or missing, constants that differ between
+recordings, a first integral not preferred, and the whole-recording run."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+from .first_integral import integrated_system
+from .terms import MARGIN
+
+# A closed system reproduces held-out data when its score (held-out misfit in noise
+# variances) is ~1. The noise level is itself estimated from the data (to ~10%), so a
+# score is called too high only when it exceeds 1 + REPRODUCTION_SLACK by two standard
+# errors. Over the discovery benchmark's correct results the largest
+# score - 2 se was 1.07; a missing term or hidden state gives more.
+REPRODUCTION_SLACK = 0.15
+SIGNIFICANCE = 2.0  # a kept coefficient should be this many standard errors from zero
+
+FREE_RUN_RTOL = 1e-4  # a blow-up check, not a fit: a loose tolerance suffices
+FREE_RUN_BUDGET = 60_000  # right-hand-side evaluations per recording
+
+
+def free_run_doubt(result, trajectories):
+    """A doubt when the closed system, integrated over a whole recording from its fitted
+    initial state, blows up or exhausts its step budget.
+
+    The refinement fits and the judge scores the system segment by segment (multiple
+    shooting), so a wrong law that follows the data over short stretches can fit and
+    score as well as the truth; over the whole recording it need not stay near the
+    data at all. A law that reproduces a recording keeps a bounded trajectory over it
+    (chaos may take it elsewhere on the attractor, not to infinity), so a blow-up
+    (any state beyond 1000 times the largest fitted magnitude) is a failed check (a
+    non-spiking Rossler with z hidden at 1% noise: a six-term hidden law fitted the
+    segments to their noise, confidently, and blew up within the recording). LSODA
+    (stiffness detected, so a stiff law is not mistaken for an unstable one), about
+    0.1-0.2 s per recording of 2000 samples.
+    """
+    field = result.vector_field()
+    for k, (t, states) in enumerate(zip(result.all_times, trajectories, strict=True)):
+        status = bounded_run(field, t, states)
+        if status == "success":
+            continue
+        where = f"recording segment {k}" if len(trajectories) > 1 else "the recording"
+        what = {"blow_up": "blows up",
+                "step_budget": "exhausts its step budget (stiff or nearly singular)"}.get(
+                    status, "could not be integrated (the solver failed)")
+        return (f"integrated over {where} from its fitted initial state (not segment by "
+                f"segment, as it was fitted and scored), the closed system {what}: it "
+                "follows the data over short stretches only, which a wrong law can do; more "
+                "data, less noise or another closure_library may settle it",)
+    return ()
+
+
+class _Budget(Exception):
+    pass
+
+
+def bounded_run(field, t, states):
+    """"success", "blow_up" (a state beyond 1000 times the fitted states' largest
+    magnitude, or not finite), "step_budget" or "failed" for a run over ``t`` from
+    ``states[0]``."""
+    scale = max(1.0, float(np.nanmax(np.abs(states))))
+    count = [0]
+
+    def rhs(ti, y):
+        count[0] += 1
+        if count[0] > FREE_RUN_BUDGET:
+            raise _Budget
+        return np.asarray(field(ti, y), dtype=float)
+
+    def escaped(ti, y):
+        return 1e3 * scale - float(np.max(np.abs(y)))
+
+    escaped.terminal = True
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):
+            sol = solve_ivp(rhs, (float(t[0]), float(t[-1])), np.asarray(states[0], float),
+                            method="LSODA", rtol=FREE_RUN_RTOL,
+                            atol=FREE_RUN_RTOL * 1e-3 * scale, events=escaped)
+    except _Budget:
+        return "step_budget"
+    if sol.status == 1 or not np.all(np.isfinite(sol.y)):
+        return "blow_up"
+    return "success" if sol.success else "failed"
+
+
+def _term_text(cell, system, rename, names_map):
+    r, c = cell
+    state = system.state_names[r]
+    return f"{system.features[c].xreplace(rename)} in d{names_map.get(state, state)}/dt"
+
+
+def weak_doubts(found, system, rename, names_map):
+    """A sentence per term the data support only weakly, or whose support could not be
+    checked."""
+    out = []
+    for cell, change, bar in found:
+        if cell is None:
+            out.append("the support of the terms could not be checked (refitting without "
+                       "a term blew up): they may include terms the data do not need")
+        elif not np.isfinite(change):
+            out.append(f"the support of {_term_text(cell, system, rename, names_map)} could "
+                       "not be checked (refitting without it failed): it may stand for a "
+                       "small systematic error rather than part of the law")
+        else:
+            out.append(
+                f"the data support {_term_text(cell, system, rename, names_map)} only weakly "
+                f"(dropping it raises the misfit by {change:.3g} residual variances, under "
+                f"the {bar:.3g} that very strong evidence needs): it may stand for a small "
+                "systematic error rather than part of the law")
+    return tuple(out)
+
+
+MISSING_SHOWN = 3  # left-out terms named one by one; the rest are counted
+
+
+def missing_doubts(found, system, rename, names_map):
+    """A sentence per term left out that the data call for, or nearly do (the nearest
+    ``MISSING_SHOWN``; one sentence counts the rest)."""
+    out = []
+    for cell, change, price in found[:MISSING_SHOWN]:
+        term = _term_text(cell, system, rename, names_map)
+        if change + price < 0:  # selection could not take it (its fit failed to join)
+            out.append(f"{term} was left out, but the data call for it (adding it lowers "
+                       f"the misfit by {-change:.3g} residual variances, more than the "
+                       f"{price:.3g} a term costs): the law probably includes it")
+        else:
+            out.append(f"{term} was left out, but the data nearly call for it (adding it "
+                       f"lowers the misfit by {-change:.3g} residual variances, within "
+                       f"{MARGIN:g} of the {price:.3g} a term costs): the law may include it")
+    if len(found) > MISSING_SHOWN:
+        out.append(f"{len(found) - MISSING_SHOWN} more left-out terms would each lower the "
+                   "misfit by nearly a term's cost or more: the law may be larger")
+    return tuple(out)
+
+
+def exchange_doubts(moves, system, rename, names_map):
+    """A sentence per term exchange the data do not refuse."""
+    def term(cell):
+        return _term_text(cell, system, rename, names_map)
+
+    out = []
+    for (kind, (gone, new)), change in moves:
+        gone = " and ".join(term(g) for g in gone) if kind != "swap" else term(gone)
+        new = " and ".join(term(g) for g in new) if kind == "exchange" else term(new)
+        what = ("a smaller system fits almost as well" if kind == "merge"
+                else "an equally good system")
+        out.append(f"the data cannot tell {gone} from {new} (exchanging them changes the "
+                   f"misfit by {change:+.2g} residual variances): {what}")
+    return tuple(out)
+
+
+def doubts(score, score_se, refinement, terms, hidden):
+    """The checks a refined system fails, each as a sentence with its remedy."""
+    found = []
+    if not (np.isfinite(score) and np.isfinite(score_se)):
+        found.append("the closed system could not be scored on held-out data (its "
+                     "integration blew up, or its hidden states jump between integration "
+                     "segments): it was not checked against the data")
+    elif score - SIGNIFICANCE * score_se > 1 + REPRODUCTION_SLACK:
+        found.append(
+            f"the closed system does not reproduce held-out data down to their noise (score "
+            f"{score:.3g} +- {score_se:.2g}, expected ~1): a term or a hidden state is "
+            "probably missing; try a richer library or closure_library, or more data")
+    if refinement.status != "converged":
+        found.append(
+            f"refinement by integration stopped at its iteration limit ({refinement.status}, "
+            f"{refinement.iterations} iterations): the coefficients are not a converged fit")
+    weak = [f"d{t.state}/dt: {t.feature}" for t in terms
+            if t.state in hidden and not t.fixed and np.isfinite(t.stderr)
+            and abs(t.value) < SIGNIFICANCE * t.stderr]
+    if weak:
+        found.append(
+            f"{len(weak)} hidden-equation coefficient(s) within {SIGNIFICANCE:g} standard "
+            f"errors of zero ({', '.join(weak[:4])}{', ...' if len(weak) > 4 else ''}): "
+            "the data do not determine them")
+    return tuple(found)
+
+
+def segment_constant_doubts(terms, names, n_observed, trajectories, stds):
+    """A hidden state without dynamics (``dh/dt = 0``) is one constant per recording (or
+    gap-separated segment): when those constants differ beyond their standard errors,
+    the recordings do not share one law (each gets its own parameter). A doubt per such
+    state; also one when a constant cannot be read (a trajectory blew up)."""
+    if len(trajectories) < 2:
+        return ()
+    moving = {t.state for t in terms if t.value != 0}
+    found = []
+    for a, name in enumerate(names):
+        if name in moving:
+            continue
+        col = n_observed + a
+        values = np.array([tr[0, col] for tr in trajectories])
+        if not np.all(np.isfinite(values)):
+            found.append(
+                f"{name} has no dynamics of its own and its constant could not be read in "
+                "every recording (an integration blew up): whether the recordings share "
+                "one law was not checked")
+            continue
+        errors = np.array([sd[0, col] for sd in stds])
+        spread = np.abs(values[:, None] - values[None, :])
+        bound = SIGNIFICANCE * np.sqrt(errors[:, None] ** 2 + errors[None, :] ** 2)
+        if np.any(spread > np.where(np.isfinite(bound), bound, 0.0)
+                  + 1e-9 * np.max(np.abs(values))):
+            found.append(
+                f"{name} has no dynamics of its own but takes different constant values in "
+                f"different recordings or segments ({', '.join(f'{v:.4g}' for v in values[:5])}"
+                f"{', ...' if len(values) > 5 else ''}): they do not share one law (each "
+                "has its own parameter); the system may describe each recording's trend "
+                "rather than the dynamics. Longer recordings, or a hidden state with an "
+                "equation of its own, are needed")
+    return tuple(found)
+
+
+def first_integral_doubt(verdict, names):
+    """A doubt when the winner's rate law has a first integral (:mod:`.first_integral`):
+    the smaller first-order system with one constant was judged and not preferred, so
+    the conserved quantity differs between recordings or segments, or the fit is not
+    settled; either way the second hidden state is not shown to be dynamics."""
+    if integrated_system(verdict) is None:
+        return ()
+    h, r = names[0], names[1]
+    return (f"d{r}/dt is the time derivative of a first-order law for {h} "
+            f"(d{h}/dt = G({h}) + c, with c = {r} - G({h}) conserved), yet that smaller "
+            "system was not preferred: c differs between recordings or segments, or the "
+            f"fit is not settled; {r} may stand for a constant per recording rather than "
+            "dynamics",)
