@@ -317,6 +317,64 @@ def _rossler(rng, noise, seed, sampling=None):
                 (("x", "1"),), with_observed=True)
 
 
+def _lv_predator(rng, noise, seed, sampling=None):
+    """Lotka-Volterra seen through the predator y: the hidden prey x is the coefficient
+    of y in dy/dt (h = d x - g, or d x with -g y shown on its own)."""
+    p = {"a": rng.uniform(0.8, 1.2), "b": rng.uniform(0.08, 0.12),
+         "g": rng.uniform(1.2, 1.8), "d": rng.uniform(0.06, 0.09)}
+    x0 = (p["g"] / p["d"] * rng.uniform(0.4, 0.8), p["a"] / p["b"] * rng.uniform(0.4, 0.8))
+    t = _grid(sampling, 20.0)
+    clean, noisy = _simulated(lambda s: [p["a"] * s[0] - p["b"] * s[0] * s[1],
+                                         -p["g"] * s[1] + p["d"] * s[0] * s[1]],
+                              x0, t, noise, seed)
+    x, y = _sym("xy")
+    a, b, g, d = sp.symbols("a b g d")
+    truth = {x: a * x - b * x * y, y: -g * y + d * x * y}
+    return Draw("lv_predator", p, t, noisy[:, 1:], clean[:, 1:], ("y",), clean[:, :1],
+                {"rhs": truth, "hidden": [x],
+                 "values": {a: p["a"], b: p["b"], g: p["g"], d: p["d"]}},
+                (("y", "y"),), with_observed=True)
+
+
+def _duffing(rng, noise, seed, sampling=None):
+    """A damped Duffing oscillator seen through x: xdot = v, vdot = -delta v - alpha x -
+    beta x^3 (v hidden, the coefficient of 1 in dx/dt; its law needs x^3, beyond the
+    default closure library's degree 2)."""
+    p = {"delta": rng.uniform(0.05, 0.15), "alpha": rng.uniform(0.8, 1.2),
+         "beta": rng.uniform(0.5, 1.5)}
+    phase = rng.uniform(0, 2 * np.pi)
+    x0 = (2.0 * np.cos(phase), 2.0 * np.sin(phase))
+    t = _grid(sampling, 30.0)
+    clean, noisy = _simulated(lambda s: [s[1], -p["delta"] * s[1] - p["alpha"] * s[0]
+                                         - p["beta"] * s[0] ** 3], x0, t, noise, seed)
+    x, v = _sym(["x", "v"])
+    de, al, be = sp.symbols("delta alpha beta")
+    truth = {x: v, v: -de * v - al * x - be * x**3}
+    return Draw("duffing", p, t, noisy[:, :1], clean[:, :1], ("x",), clean[:, 1:],
+                {"rhs": truth, "hidden": [v],
+                 "values": {de: p["delta"], al: p["alpha"], be: p["beta"]}},
+                (("x", "1"),), with_observed=True)
+
+
+def _lorenz_y(rng, noise, seed, sampling=None):
+    """Lorenz with x and z observed, y hidden: sigma y is the coefficient of 1 in dx/dt
+    and y that of x in dz/dt (one hidden state seen through two terms)."""
+    p = {"sigma": rng.uniform(9, 11), "rho": rng.uniform(26, 30),
+         "beta": rng.uniform(2.4, 3.0)}
+    x0 = [*rng.uniform(-10, 10, 2), rng.uniform(15, 30)]
+    t = _grid(sampling, 10.0)
+    clean, noisy = _simulated(lambda s: [p["sigma"] * (s[1] - s[0]),
+                                         s[0] * (p["rho"] - s[2]) - s[1],
+                                         s[0] * s[1] - p["beta"] * s[2]], x0, t, noise, seed)
+    x, y, z = _sym("xyz")
+    si, rh, be = sp.symbols("sigma rho beta")
+    truth = {x: si * (y - x), y: x * (rh - z) - y, z: x * y - be * z}
+    return Draw("lorenz_y", p, t, noisy[:, [0, 2]], clean[:, [0, 2]], ("x", "z"),
+                clean[:, 1:2], {"rhs": truth, "hidden": [y],
+                                "values": {si: p["sigma"], rh: p["rho"], be: p["beta"]}},
+                (("x", "1"),), with_observed=True)
+
+
 FAMILIES = {
     f.name: f for f in [
         Family("lotka_volterra", "prey-only Lotka-Volterra (predator hidden)",
@@ -356,6 +414,14 @@ UNSEEN = {
                "x^2)", lambda: ps.PolynomialLibrary(degree=3), _brusselator),
         Family("rossler", "non-spiking Rossler, x and y observed (z hidden)",
                lambda: ps.PolynomialLibrary(degree=3), _rossler),
+        # added later; duffing's draw 0 at 1% led to the check for a hidden state that is
+        # a function of the observed states, so it is no longer unseen
+        Family("lv_predator", "Lotka-Volterra seen through the predator (prey hidden)",
+               lambda: ps.PolynomialLibrary(degree=3, include_bias=False), _lv_predator),
+        Family("duffing", "damped Duffing oscillator, x observed (velocity hidden; its "
+               "law needs x^3)", lambda: ps.PolynomialLibrary(degree=3), _duffing),
+        Family("lorenz_y", "Lorenz, x and z observed (y hidden, seen through two terms)",
+               lambda: ps.PolynomialLibrary(degree=2), _lorenz_y),
     ]
 }
 ALL_FAMILIES = {**FAMILIES, **UNSEEN}

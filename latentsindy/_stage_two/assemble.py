@@ -15,6 +15,7 @@ from .checks import (
     first_integral_doubt,
     free_run_doubt,
     missing_doubts,
+    observed_function_doubts,
     segment_constant_doubts,
     weak_doubts,
 )
@@ -153,7 +154,8 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
         + first_integral_doubt(best, names)
         + exchange_doubts(exchangeable_terms(best), system, rename, names_map)
         + weak_doubts(weakly_supported_terms(best), system, rename, names_map)
-        + missing_doubts(nearly_needed_terms(best), system, rename, names_map))
+        + missing_doubts(nearly_needed_terms(best), system, rename, names_map)
+        + observed_function_doubts(system, names_map))
     free = free_run_doubt(result, trajectories) if best.scored else ()
     return dataclasses.replace(result, doubts=result.doubts + free) if free else result
 

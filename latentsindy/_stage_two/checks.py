@@ -6,9 +6,11 @@ recordings, a first integral not preferred, and the whole-recording run."""
 from __future__ import annotations
 
 import numpy as np
+import sympy as sp
 from scipy.integrate import solve_ivp
 
 from .first_integral import integrated_system
+from .observed_function import observed_function
 from .terms import MARGIN
 
 # A closed system reproduces held-out data when its score (held-out misfit in noise
@@ -228,3 +230,22 @@ def first_integral_doubt(verdict, names):
             "system was not preferred: c differs between recordings or segments, or the "
             f"fit is not settled; {r} may stand for a constant per recording rather than "
             "dynamics",)
+
+
+def observed_function_doubts(system, names_map):
+    """A doubt per hidden state that is a function of the observed states
+    (:mod:`.observed_function`): it is no hidden variable, only a way of writing terms
+    the closure library lacks."""
+    out = []
+    for k in range(system.n_observed, len(system.state_names)):
+        found = observed_function(system, k)
+        if found is None:
+            continue
+        name = names_map.get(system.state_names[k], system.state_names[k])
+        shown = found.xreplace({f: sp.Float(f, 4) for f in found.atoms(sp.Float)})
+        out.append(f"{name} is a function of the observed states, {name} = {shown} + "
+                   f"constant (its law is that function's time derivative along the "
+                   f"system): not a hidden variable, but terms the closure library lacks; "
+                   f"substituted, the system has one hidden state fewer (a closure_library "
+                   f"with higher powers may find it)")
+    return tuple(out)

@@ -24,6 +24,7 @@ from .first_integral import integrated_proposal, integrated_system
 from .gauge import shifted_guesses, shifted_proposal, shifted_system
 from .hypotheses import Context, Proposal, close
 from .nested import nested_proposals, nested_system, shifted_nested_system
+from .observed_function import reduced_proposal, reduced_system
 from .refine import Fit, Problem, RefineOptions, cross_validate
 from .shooting import BlowUp
 from .smoother import HiddenFit, single_term
@@ -233,7 +234,16 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     elif ordered and ordered[0].scored:
         restated = _nested_shifted(ordered[0], ctx, options)
         if restated is not None:
-            return rank(verdicts + [restated])
+            verdicts = verdicts + [restated]
+            ordered, uncertain = rank(verdicts)
+        lifted = ordered[0]
+        reduced = _reduced(lifted, options) if lifted.proposal.nested else None
+        if reduced is not None:
+            if reduced.scored and reduced.cv <= max(lifted.cv + lifted.cv_se, TIE):
+                # the same dynamics with one hidden state fewer (and as many parameters:
+                # the nested state's initial value became the substitution's constant)
+                verdicts = [v for v in verdicts if v is not lifted]
+            return rank(verdicts + [reduced])
     return ordered, uncertain
 
 
@@ -379,6 +389,20 @@ def _nested_shifted(verdict: Verdict, ctx: Context, options) -> Verdict | None:
         return None
     proposal = replace(verdict.proposal, hidden=[g[:, system.n_observed:] for g in guesses],
                        origin=verdict.proposal.origin + ", nested state shifted")
+    data = (verdict.problem.times, verdict.problem.observed)
+    return _restated(proposal, system, guesses, data, verdict, options)
+
+
+def _reduced(verdict: Verdict, options) -> Verdict | None:
+    """A nested winner without its nested state where that state is a function of the
+    observed states (:mod:`.observed_function`), refined, its terms selected and
+    scored; None if there is none or it cannot be integrated."""
+    found = reduced_system(verdict)
+    if found is None:
+        return None
+    system, guesses, _ = found
+    name = verdict.system.state_names[-1]
+    proposal = reduced_proposal(verdict.proposal, guesses, system.n_observed, name)
     data = (verdict.problem.times, verdict.problem.observed)
     return _restated(proposal, system, guesses, data, verdict, options)
 

@@ -76,7 +76,8 @@ def test_ten_percent_noise_finishes_and_reports():
 
 
 @pytest.mark.parametrize("family", ["lorenz_x", "driven_oscillator", "epidemic",
-                                    "van_der_pol", "brusselator", "rossler"])
+                                    "van_der_pol", "brusselator", "rossler", "lv_predator",
+                                    "duffing", "lorenz_y"])
 def test_new_family_truth_holds_in_the_natural_variables(family):
     """The benchmark's truth, moved into the variables latentsindy reports (a hidden
     state inside another's equation for Lorenz from x), is the system the noise-free
