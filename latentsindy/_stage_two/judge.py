@@ -400,7 +400,7 @@ def _reduced(verdict: Verdict, options) -> Verdict | None:
     found = reduced_system(verdict)
     if found is None:
         return None
-    system, guesses, _ = found
+    system, guesses = found
     name = verdict.system.state_names[-1]
     proposal = reduced_proposal(verdict.proposal, guesses, system.n_observed, name)
     data = (verdict.problem.times, verdict.problem.observed)

@@ -60,7 +60,7 @@ def observed_function(system, state: int):
 
 def reduced_system(verdict):
     """The winner without its nested state where that state is a function of the
-    observed states: (system, guesses, F) with ``F + c`` substituted (``c`` its
+    observed states: (system, guesses) with ``F + c`` substituted (``c`` its
     conserved mean along the fitted trajectories), or None."""
     p, system = verdict.proposal, verdict.system
     if len(p.nested) != 1 or p.order != 1:
@@ -86,7 +86,7 @@ def reduced_system(verdict):
         return None
     reduced = system_from_rows(names, n_obs, rows, system, kept_rows=n_obs)
     guesses = [np.delete(tr, child, axis=1) for tr in trajectories]
-    return reduced, guesses, found
+    return reduced, guesses
 
 
 def reduced_proposal(p, guesses, n_observed, name):

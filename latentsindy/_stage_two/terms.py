@@ -159,8 +159,8 @@ def missing_terms(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS):
     Fails safe as :func:`weak_terms` does: the ``limit`` additions predicted best are
     refitted exactly; a further one predicted within the margin counts with its
     prediction. An addition whose refit blows up or fails is not counted (the system
-    without the term stands). Returns [(cell, misfit change, price)], the nearest
-    first; the change is negative (the misfit falls)."""
+    without the term stands). Returns [(cell, misfit change, price)], the term the
+    data call for most (largest fall in misfit) first; the change is negative."""
     s2 = max(fit.residual_variance, 1.0)
     price = _price(problem, fit, candidates)
     allowed = candidates & ~fit.system.free

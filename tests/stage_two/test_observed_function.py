@@ -64,7 +64,7 @@ def test_the_reduced_system_is_the_one_hidden_state_law():
     verdict = SimpleNamespace(
         proposal=SimpleNamespace(nested=(("h0", X, None),), order=1), system=lifted(),
         problem=SimpleNamespace(trajectories=lambda fit: [tr]), fit=None)
-    system, guesses, found = reduced_system(verdict)
+    system, guesses = reduced_system(verdict)
     assert system.state_names == ("x", "h0")
     law = system.rhs()["h0"]
     expected = -DELTA * H0 - ALPHA * X - BETA * X**3
