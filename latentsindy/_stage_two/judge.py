@@ -400,11 +400,11 @@ def _reduced(verdict: Verdict, options) -> Verdict | None:
     found = reduced_system(verdict)
     if found is None:
         return None
-    system, guesses = found
+    system, guesses, candidates = found
     name = verdict.system.state_names[-1]
     proposal = reduced_proposal(verdict.proposal, guesses, system.n_observed, name)
     data = (verdict.problem.times, verdict.problem.observed)
-    return _restated(proposal, system, guesses, data, verdict, options)
+    return _restated(proposal, system, guesses, data, verdict, options, candidates)
 
 
 def _integrated(verdict: Verdict, options) -> Verdict | None:
@@ -421,12 +421,16 @@ def _integrated(verdict: Verdict, options) -> Verdict | None:
 
 
 @timed("restatements")
-def _restated(proposal, system, guesses, data, verdict, options) -> Verdict | None:
+def _restated(proposal, system, guesses, data, verdict, options,
+              candidates=None) -> Verdict | None:
     """``verdict``'s system restated as ``system`` (from ``guesses``), refined, its terms
-    selected and scored on ``data`` (times, observed); None if it cannot be integrated."""
+    selected (``candidates``: terms it may add; none by default) and scored on ``data``
+    (times, observed); None if it cannot be integrated."""
+    if candidates is None:
+        candidates = np.zeros_like(system.free)
     try:
         problem = Problem(system, *data, guesses, options)
-        trial = _Trial(proposal, problem, problem.fit(system), np.zeros_like(system.free),
+        trial = _Trial(proposal, problem, problem.fit(system), candidates,
                        verdict.initial_misfit)
     except BlowUp:
         return None

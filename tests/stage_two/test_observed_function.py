@@ -14,7 +14,12 @@ from latentsindy import discover_hidden
 from latentsindy._stage_two import judge
 from latentsindy._stage_two.checks import observed_function_doubts
 from latentsindy._stage_two.field import ParametricSystem
-from latentsindy._stage_two.observed_function import observed_function, reduced_system
+from latentsindy._stage_two.observed_function import (
+    NEAR,
+    observed_function,
+    reduced_system,
+    trajectory_function,
+)
 
 DELTA, ALPHA, BETA = 0.1018, 1.0919, 0.9653  # a damped Duffing oscillator
 X, H0, H1 = sp.symbols("x h0 h1", real=True)
@@ -63,8 +68,8 @@ def test_the_reduced_system_is_the_one_hidden_state_law():
     tr = np.column_stack([clean, -BETA * clean[:, 0] ** 2 - ALPHA])
     verdict = SimpleNamespace(
         proposal=SimpleNamespace(nested=(("h0", X, None),), order=1), system=lifted(),
-        problem=SimpleNamespace(trajectories=lambda fit: [tr]), fit=None)
-    system, guesses = reduced_system(verdict)
+        problem=SimpleNamespace(trajectories=lambda fit: [tr]), fit=None, candidates=None)
+    system, guesses, candidates = reduced_system(verdict)
     assert system.state_names == ("x", "h0")
     law = system.rhs()["h0"]
     expected = -DELTA * H0 - ALPHA * X - BETA * X**3
@@ -72,6 +77,53 @@ def test_the_reduced_system_is_the_one_hidden_state_law():
     assert np.array_equal(guesses[0], clean)
     verdict.proposal.nested = ()
     assert reduced_system(verdict) is None  # only a nested state is substituted
+
+
+def test_a_state_that_follows_a_function_of_the_observed_states_is_fitted():
+    """h = 0.5 + 2 x - 0.3 x^2 (+ noise 1e-4 of its spread) along x = 2 sin t: the
+    lowest degree that follows it (2), coefficients to 1e-3. h = cos t is no function
+    of x (two values of h at every x): None."""
+    t = np.linspace(0, 4 * np.pi, 800)
+    x = 2 * np.sin(t)
+    h = 0.5 + 2 * x - 0.3 * x**2
+    h = h + 1e-4 * h.std() * np.random.default_rng(0).standard_normal(len(t))
+    found = trajectory_function([np.column_stack([x, h])], 1, 1, [X, H0])
+    poly = sp.Poly(found, X)
+    assert poly.degree() == 2
+    for monomial, value in ((1, 0.5), (X, 2.0), (X**2, -0.3)):
+        assert float(poly.coeff_monomial(monomial)) == pytest.approx(value, abs=1e-3)
+    assert trajectory_function([np.column_stack([x, np.cos(t)])], 1, 1, [X, H0]) is None
+    off = h + 3 * NEAR * h.std() * np.sin(7 * t)  # beyond the gate at every degree
+    assert trajectory_function([np.column_stack([x, off])], 1, 1, [X, H0]) is None
+
+
+def test_a_state_that_only_nearly_is_a_function_is_substituted_by_its_fit():
+    """A weak 1e-4 x h1 in h1's law breaks the exact identity (no F found), but h1
+    still follows -beta x^2 - alpha along the trajectory: the fitted F is substituted,
+    the reduced law is Duffing's to 1e-3, and the lifted system's candidate terms in
+    the hidden laws (not in h1's, not in the observed law) come along."""
+    t = np.linspace(0, 10, 400)
+    clean, _ = duffing(t)
+    tr = np.column_stack([clean, -BETA * clean[:, 0] ** 2 - ALPHA])
+    system = lifted({X * H1: 1e-4})
+    assert observed_function(system, 2) is None
+    pool = np.zeros_like(system.free)
+    features = list(system.features)
+    pool[1, features.index(H1)] = True  # holds h1: gone with it
+    pool[0, features.index(X * H0)] = True  # an observed law's: not carried over
+    extra = ParametricSystem(system.state_names, 1, (*features, X**2),
+                             np.hstack([system.coef, np.zeros((3, 1))]),
+                             np.hstack([system.free, np.zeros((3, 1), bool)]))
+    pool = np.hstack([pool, np.array([[False], [True], [False]])])  # x^2 in h0's law
+    verdict = SimpleNamespace(
+        proposal=SimpleNamespace(nested=(("h0", X, None),), order=1), system=extra,
+        problem=SimpleNamespace(trajectories=lambda fit: [tr]), fit=None, candidates=pool)
+    reduced, guesses, candidates = reduced_system(verdict)
+    law = reduced.rhs()["h0"]
+    expected = -DELTA * H0 - ALPHA * X - BETA * X**3
+    assert all(abs(float(c)) < 1e-3 for c in sp.Poly(sp.expand(law - expected), X, H0).coeffs())
+    added = {(i, reduced.features[c]) for i, c in zip(*np.nonzero(candidates), strict=True)}
+    assert added == {(1, X**2)}
 
 
 def test_the_doubt_names_the_function():
