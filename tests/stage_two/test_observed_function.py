@@ -11,7 +11,7 @@ import sympy as sp
 from scipy.integrate import solve_ivp
 
 from latentsindy import discover_hidden
-from latentsindy._stage_two import judge
+from latentsindy._stage_two import restate
 from latentsindy._stage_two.checks import observed_function_doubts
 from latentsindy._stage_two.field import ParametricSystem
 from latentsindy._stage_two.observed_function import (
@@ -152,7 +152,7 @@ def test_duffing_seen_through_x_comes_back_with_one_hidden_state(monkeypatch):
     xs = result.symbols[0]
     for monomial, value in ((h, -DELTA), (xs, -ALPHA), (xs**3, -BETA)):
         assert law.coeff_monomial(monomial) == pytest.approx(value, rel=3e-3)
-    monkeypatch.setattr(judge, "_reduced", lambda verdict, options: None)
+    monkeypatch.setattr(restate, "reduced", lambda verdict, options: None)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         lifted_result = discover_hidden(x, ps.PolynomialLibrary(degree=3), t=t,

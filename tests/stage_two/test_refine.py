@@ -32,6 +32,7 @@ from latentsindy._stage_two.terms import (
     select_terms,
     weak_terms,
 )
+from latentsindy._stage_two.verdict import Trial, finish
 
 X, Y, Z, H = sp.symbols("x y z h", real=True)
 A, B, G, D = 1.0, 0.1, 1.5, 0.075
@@ -229,7 +230,7 @@ def test_a_move_or_fit_that_does_not_join_is_refused(monkeypatch):
     fit = problem.fit()
     monkeypatch.setattr(Problem, "joins", lambda self, fit: False)
     assert select_terms(problem, fit, candidates)[1] == []
-    verdict = judge._finish(judge._Trial(None, problem, fit, candidates, 1.0))
+    verdict = finish(Trial(None, problem, fit, candidates, 1.0))
     assert not verdict.scored and verdict.history == ("does not join",)
     small = dataclasses.replace(verdict, history=("does not join",))
     large = _verdict(1.0, 0.0, 9, 1)

@@ -1,0 +1,160 @@
+"""A proposal judged: its closed system built, refined by integration, its terms
+selected and scored on held-out data (:class:`Verdict`).
+
+:func:`build` assembles a proposal's closed system from its structure (observed terms,
+hidden states' loadings, the closure's terms); :func:`first_fit` refines it by multiple
+shooting (:mod:`.refine`); :func:`finish` selects its terms on the integrated likelihood
+(:mod:`.terms`) and scores it on interleaved held-out segments.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import sympy as sp
+
+from .._core.library import feature_expressions
+from .._core.timing import stage
+from .field import ParametricSystem
+from .hypotheses import Context, Proposal
+from .nested import nested_system
+from .refine import Fit, Problem, cross_validate
+from .shooting import BlowUp
+from .terms import select_terms
+
+# A first fit whose misfit after its first pass is this many times the best so far gets
+# no enforcing pass: rejection needs only twice the best, and the enforcing pass only
+# tightens continuity (on Lorenz such fits sat at 600-5000 times the best after 40
+# iterations and spent as many again there).
+HOPELESS = 50.0
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """A refined, scored proposal."""
+
+    proposal: Proposal
+    fit: Fit
+    problem: Problem
+    cv: float
+    cv_se: float
+    history: tuple
+    initial_misfit: float
+    candidates: np.ndarray | None = None
+
+    @property
+    def system(self) -> ParametricSystem:
+        return self.fit.system
+
+    @property
+    def scored(self) -> bool:
+        """Scored on held-out data (not rejected early, did not blow up)."""
+        return not (self.history and isinstance(self.history[0], str))
+
+    @property
+    def size(self) -> int:
+        """Free coefficients plus hidden initial values."""
+        return self.system.n_free + (len(self.system.state_names) - self.system.n_observed)
+
+
+def build(p: Proposal, ctx: Context):
+    """The closed system of a proposal, the terms stepwise selection may add, and the
+    initial guesses of the states."""
+    st = p.structure
+    obs = list(ctx.observed_names)
+    hidden = [f"h{a}" for a in range(st.n_hidden)] + (["g0"] if p.order == 2 else [])
+    names = obs + hidden
+    sym = {n: sp.Symbol(n, real=True) for n in names}
+    features, index = [], {}
+
+    def col(expr):
+        expr = sp.expand(expr)
+        if expr not in index:
+            index[expr] = len(features)
+            features.append(expr)
+        return index[expr]
+
+    obs_cols = [col(e) for e in ctx.feature_exprs]
+    closure_states = (["g0"] if p.order == 2 else []) + hidden[:st.n_hidden] + obs
+    closure_cols = [col(e) for e in feature_expressions(
+        p.closure.library, list(p.closure.feature_names), closure_states)]
+    loads = [(i, col(sym[hidden[a]] * ctx.feature_exprs[k]), a, k)
+             for i in range(len(obs)) for k in range(st.support.shape[1])
+             for a in range(st.n_hidden) if st.loadings[i, k, a] != 0]
+    rate = col(sym["g0"]) if p.order == 2 else None
+    n = len(names)
+    coef = np.zeros((n, len(features)))
+    free = np.zeros_like(coef, dtype=bool)
+    candidates = np.zeros_like(free)
+    for i in range(len(obs)):
+        for k in range(st.support.shape[1]):
+            if st.support[i, k] and (i, k) not in st.pivots:
+                coef[i, obs_cols[k]] = p.fit.constants[i, k]
+                free[i, obs_cols[k]] = True
+            elif ctx.free_rows[i] and not st.support[i, k]:
+                candidates[i, obs_cols[k]] = True
+    for i, c, a, k in loads:
+        coef[i, c] = st.loadings[i, k, a]
+        free[i, c] = (i, k) != st.pivots[a]
+    closed = [n - 1] if p.order == 2 else list(range(len(obs), n))
+    if rate is not None:
+        coef[len(obs), rate] = 1.0  # h0' = g0: the rate state is defined as such
+    for r, row in zip(closed, p.closure.coef, strict=True):
+        for value, c in zip(row, closure_cols, strict=True):
+            if value != 0:
+                coef[r, c] = value
+                free[r, c] = True
+            else:
+                candidates[r, c] = True
+    system = ParametricSystem(tuple(names), len(obs), tuple(features), coef, free)
+    guesses = [np.hstack([x, h]) for x, h in zip(ctx.smoothed, p.hidden, strict=True)]
+    return system, candidates & ~free, guesses
+
+
+@dataclass
+class Trial:
+    proposal: Proposal
+    problem: Problem
+    fit: Fit
+    candidates: np.ndarray
+    initial_misfit: float
+
+
+def first_fit(p: Proposal, ctx: Context, options, best=np.inf) -> Trial | None:
+    """``p`` refined; ``best`` is the lowest misfit reached so far: a fit whose first
+    pass ends ``HOPELESS`` times above it gets no enforcing pass (it is rejected)."""
+    system, candidates, guesses = nested_system(p, ctx, build) if p.nested else build(p, ctx)
+    try:
+        with stage("refinement"):
+            problem = Problem(system, ctx.times, ctx.observed, guesses, options)
+            initial = problem.equations(system, problem.initial_starts,
+                                        np.ones(problem.n_segments), 1.0, jacobian=False)
+            fit = problem.fit(system, give_up=HOPELESS * max(best, 1.0))
+    except BlowUp:
+        return None  # the proposal's system cannot even be integrated from its guesses
+    return Trial(p, problem, fit, candidates, float(np.sqrt(initial.data_cost /
+                                                             problem.n_data)))
+
+
+def finish(trial: Trial) -> Verdict:
+    """Stepwise selection and the held-out score of a refined proposal."""
+    # the pool includes the system's own terms, so a term swapped out can come back
+    pool = trial.candidates | trial.fit.system.free
+    try:
+        fit, history = select_terms(trial.problem, trial.fit, pool)
+        if not trial.problem.joins(fit):
+            return unscored(trial, "does not join")  # not a trajectory of the system
+        cv, se, _ = cross_validate(trial.problem, fit)
+    except BlowUp:
+        return unscored(trial, "blew up")
+    return Verdict(trial.proposal, fit, trial.problem, cv, se, tuple(history),
+                   trial.initial_misfit, pool)
+
+
+def unscored(trial: Trial, why: str) -> Verdict:
+    """A verdict without a held-out score: ``cv`` holds the in-sample misfit (for
+    display only; ``rank`` never compares it with held-out scores)."""
+    return Verdict(trial.proposal, trial.fit, trial.problem, trial.fit.residual_variance, 0.0,
+                   (why,), trial.initial_misfit)
+
