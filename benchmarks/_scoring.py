@@ -56,7 +56,7 @@ def _feature(name, symbols):
     return expr
 
 
-def truth_in_variables(draw, defs, hidden_names, found=None):
+def truth_in_variables(draw, defs, hidden_names, found=None, every=False):
     """The true closed system in the observed states and the discovered hidden states
     (sympy, numeric coefficients), or None when the definitions do not map onto the
     true hidden variables (wrong structure). A hidden state shifted by terms the truth
@@ -64,7 +64,7 @@ def truth_in_variables(draw, defs, hidden_names, found=None):
     fix the shifts."""
     rhs, hidden = draw.truth["rhs"], draw.truth["hidden"]
     obs_syms = [sp.Symbol(n, real=True) for n in draw.observed_names]
-    phis = hidden_definitions(draw, defs, hidden_names)
+    phis = hidden_definitions(draw, defs, hidden_names, every)
     if phis is None or len(phis) != len(hidden):
         return None
     us = [sp.Symbol(n, real=True) for n in hidden_names]
@@ -77,7 +77,8 @@ def truth_in_variables(draw, defs, hidden_names, found=None):
         out[name] = _rate(phi, rhs, hidden + obs_syms).subs(sol)
     if _shifts(out.values()):
         symbols = obs_syms + us
-        shifts = None if found is None else _solve_shifts(out, found, symbols)
+        shifts = None if found is None else _solve_shifts(
+            out, found, symbols, draw.truth["values"] if every else None)
         if shifts is None:
             return None
         out = {n: sp.expand(e.subs(shifts)) for n, e in out.items()}
@@ -105,7 +106,7 @@ def observed_shift_terms(phis, observed):
     return out
 
 
-def hidden_definitions(draw, defs, hidden_names):
+def hidden_definitions(draw, defs, hidden_names, every=False):
     """Each discovered hidden state as a function of the true variables (sympy), or None.
     A hidden state may be a coefficient of an earlier hidden state's equation (Lorenz
     from x: h1 is x's coefficient in dh0/dt): that equation is written in the observed
@@ -138,21 +139,26 @@ def hidden_definitions(draw, defs, hidden_names):
             mono = sp.Poly(_feature(feature, names), *variables).monoms()[0]
         else:
             return None
-        phis.append(_coefficient(poly, mono, others[0] if others else None, variables))
+        phis.append(_coefficient(poly, mono, others[0] if others else None, variables,
+                                 every))
     return phis
 
 
 SHIFT = "_shift"  # prefix of the unknown shifts (see _coefficient)
 
 
-def _coefficient(poly, mono, others, variables):
+def _coefficient(poly, mono, others, variables, every=False):
     """The coefficient of monomial ``mono`` in ``poly``; with ``others`` (the found
     equation's terms beside it), plus every term divisible by ``mono`` that is not one
     of them, divided by it, and minus ``s_k m / mono`` for every term ``m`` beside it
     that ``mono`` divides and the truth lacks: the hidden state gave that term to the
     equation (Van der Pol found as ``dx/dt = h + mu x - mu x^3 / 3``: ``h = y - s_0 x -
     s_1 x^3``). The shifts ``s_k`` are unknowns, fixed later by the found structure
-    (:func:`_solve_shifts`)."""
+    (:func:`_solve_shifts`). With ``every``, a shift for every such term the found
+    equation shows, the truth's own included: the hidden state may be shifted by a term
+    the truth has, in the gauge where a term of its law vanishes (Lorenz seen through x
+    and z: ``h0 = sigma y + s x`` with ``s`` the root of the quadratic that removes x
+    from ``dh0/dt``)."""
     terms = poly.as_dict()
     if others is None:
         return sp.expand(terms.get(mono, sp.Integer(0)))
@@ -165,7 +171,7 @@ def _coefficient(poly, mono, others, variables):
             out += c * sp.Mul(*[v**e for v, e in zip(variables, rest, strict=True)])
     for m in sorted(shown):
         rest = tuple(a - b for a, b in zip(m, mono, strict=True))
-        if min(rest) >= 0 and m != mono and terms.get(m, 0) == 0:
+        if min(rest) >= 0 and m != mono and (every or terms.get(m, 0) == 0):
             shift = sp.Dummy(SHIFT)
             out -= shift * sp.Mul(*[v**e for v, e in zip(variables, rest, strict=True)])
     return sp.expand(out)
@@ -176,10 +182,11 @@ def _shifts(exprs):
                    if isinstance(s, sp.Dummy) and s.name == SHIFT}, key=sp.default_sort_key)
 
 
-def _solve_shifts(truth, found, symbols):
+def _solve_shifts(truth, found, symbols, values=None):
     """The shifts that make every term the found system lacks vanish from the truth in
     its variables (a linear or polynomial system in the shifts and the parameters), or
-    None when no single solution does."""
+    None when no single solution does. With the parameters' ``values``, of several
+    solutions the real one whose coefficients are nearest the found ones."""
     shifts = _shifts(truth.values())
     if not shifts:
         return {}
@@ -190,9 +197,26 @@ def _solve_shifts(truth, found, symbols):
             if mono not in have:
                 eqs.append(coef)
     sol = sp.solve(eqs, shifts, dict=True) if eqs else []
-    if len(sol) != 1 or any(s not in sol[0] for s in shifts):
-        return None
-    return sol[0]
+    sol = [x for x in sol if all(s in x for s in shifts)]
+    if len(sol) > 1 and values is not None:
+        sol = sorted((x for x in sol if all(complex(v.subs(values)).imag == 0
+                                            for v in x.values())),
+                     key=lambda x: _distance(truth, found, symbols, x, values))[:1]
+    return sol[0] if len(sol) == 1 else None
+
+
+def _distance(truth, found, symbols, shifts, values):
+    """Largest relative difference of the found coefficients from the truth's with
+    ``shifts`` (numeric), over the truth's terms."""
+    worst = 0.0
+    for name, expr in truth.items():
+        t = sp.Poly(sp.expand(expr.subs(shifts).subs(values)), *symbols).as_dict()
+        f = sp.Poly(sp.expand(found[name]), *symbols).as_dict()
+        for mono, coef in t.items():
+            c = complex(coef)
+            if abs(c) > 1e-9:
+                worst = max(worst, abs(complex(f.get(mono, 0.0)) / c - 1))
+    return worst
 
 
 def _rate(phi, rhs, variables):
@@ -274,8 +298,20 @@ def score_structure(result, draw):
     hidden_names = list(result.hidden_names)
     n_true = len(draw.truth["hidden"])
     out = {"n_hidden": len(hidden_names), "n_hidden_true": n_true}
-    truth = (truth_in_variables(draw, defs, hidden_names, result.rhs)
-             if len(defs) == n_true else None)
+    out.update(_structure(result, draw, defs, hidden_names, every=False))
+    if not out["exact"] and len(defs) == n_true:
+        # the hidden state may be shifted by a term the truth has, in the gauge where
+        # a term of its law vanishes (see _coefficient)
+        shifted = _structure(result, draw, defs, hidden_names, every=True)
+        if shifted["exact"]:
+            out.update(shifted)
+    return out
+
+
+def _structure(result, draw, defs, hidden_names, every):
+    out = {}
+    truth = (truth_in_variables(draw, defs, hidden_names, result.rhs, every)
+             if len(defs) == len(draw.truth["hidden"]) else None)
     if truth is None:
         out.update(exact=False, extra=np.nan, missing=np.nan, error=np.inf,
                    observed_error=np.inf)

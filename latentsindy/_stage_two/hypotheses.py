@@ -22,11 +22,15 @@ Sources of proposals:
   :func:`with_every_constant`): stage one's varying coefficient can take in several
   state-dependent terms at once (a hidden drive's coefficient taking in a damped
   oscillator's restoring and friction terms), which adding one constant at a time
-  cannot undo, since no single one of them makes the rest close.
+  cannot undo, since no single one of them makes the rest close;
+* where several equations vary, one hidden state shared by the best carriers of each,
+  and by every pair of carriers of two equations (:func:`_carrier_pairs`): the best
+  carrier of an equation on its own need not be the one it shares with another.
 """
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -189,13 +193,14 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
         if p is not None:
             add(p)
             first.append(p)
-    best_carrier = {}
+    best_carrier, every_carrier = {}, {}
     for i in equations:
         if not ctx.free_rows[i]:
             continue
         # the other equations keep stage one's terms as constants
         carriers = [evaluate(single_term(n_obs, n_feat, i, k, support), ctx, "carrier")
                     for k in range(n_feat)]
+        every_carrier[i] = carriers
         trials = _usable(carriers)
         fitting = min(trials, key=lambda p: p.fit.misfit)
         for p in [trials[0], fitting] + trials[1:2]:
@@ -225,6 +230,8 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
             p = evaluate(structure, ctx, "shared")
             add(p)
             add(improve_constants(p, ctx))
+        for structure in _carrier_pairs(every_carrier, support):
+            add(evaluate(structure, ctx, "shared, a carrier pair"))
     chosen = []
     for p in first + _usable(list(proposals.values())):
         if all(p.structure.key() != q.structure.key() or p.order != q.order for q in chosen):
@@ -389,6 +396,43 @@ def _shared(support, pairs, series, max_rank=MAX_RANK):
             sup[i, k] = True
         out.append(Structure(sup, loads, tuple(pairs[c] for c in pivots)))
     return out
+
+
+def _carrier_pairs(every, support):
+    """One hidden state shared by a carrier of one equation and a carrier of another,
+    for every pair of equations and carriers (the loading of the second from the
+    affine relation of the two carriers' own series, refined by the smoother).
+
+    The best-closing carrier of each equation alone need not be the shared one: Lorenz
+    seen through x and z carries y as the coefficient of 1 in dx/dt and of x in dz/dt,
+    but with the other equation unexplained, z in dx/dt (sigma y / z) and x^2 in dz/dt
+    (y / x) closed better, and together they are no one hidden state."""
+    n_obs, n_feat = support.shape
+    out = []
+    for i, j in itertools.combinations(sorted(every), 2):
+        for p in every[i]:
+            a = _series(p)
+            for q in every[j]:
+                b = _series(q)
+                if a is None or b is None:
+                    continue
+                (pi, pk), = p.structure.pivots
+                (qi, qk), = q.structure.pivots
+                loads = np.zeros((n_obs, n_feat, 1))
+                loads[pi, pk, 0] = 1.0
+                loads[qi, qk, 0] = np.polyfit(a, b, 1)[0]
+                sup = support | p.structure.support | q.structure.support
+                out.append(Structure(sup, loads, ((pi, pk),)))
+    return out
+
+
+def _series(p):
+    """A single-carrier proposal's hidden series, concatenated; None if not finite or
+    constant."""
+    if not (np.isfinite(p.score) and np.isfinite(p.fit.misfit)):
+        return None
+    h = np.concatenate([h[:, 0] for h in p.fit.hidden])
+    return h if np.all(np.isfinite(h)) and np.std(h) > 0 else None
 
 
 def _across_equations(best, support):

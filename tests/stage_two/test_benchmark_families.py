@@ -202,3 +202,26 @@ def test_only_observed_shift_terms_enter_the_r2_map():
     phi = h - s0 * x**2 - s1 * y - s2 * (x + s0)
     assert observed_shift_terms([phi], [x]) == [x**2]
     assert observed_shift_terms([phi], [x, y]) == [x**2, y]
+
+
+def test_a_hidden_state_shifted_by_a_term_the_truth_has_where_its_law_loses_one():
+    """Lorenz seen through x and z (y hidden) found as dx/dt = h0 + 11.16 x, dz/dt =
+    0.1059 h0 x + 2.178 x^2 - 2.501 z, dh0/dt = -21.58 h0 - 9.43 x z (5% noise, draw 3):
+    h0 = sigma y + s x, s = -20.60 the root of s^2 + (sigma - 1) s - sigma rho that
+    removes x from dh0/dt. Exactly Lorenz in that gauge: exact, coefficients within
+    0.2%. The same without x z in dh0/dt (and an x term instead) is no such gauge."""
+    import sympy as sp
+    from _scoring import score_structure
+
+    d = draw("lorenz_y", 3, 0.05)
+    x, z, h0 = sp.symbols("x z h0", real=True)
+    laws = {"x": {h0: 1.0, x: 11.16}, "z": {h0 * x: 0.1059, x**2: 2.1784, z: -2.5012},
+            "h0": {h0: -21.577, x * z: -9.4295}}
+    found = _found(laws, [("h0", ("x", "1"), None)])
+    found.rhs = {n: sum(c * f for f, c in eq.items()) for n, eq in laws.items()}
+    found.hidden_names = ("h0",)
+    got = score_structure(found, d)
+    assert got["exact"] and got["error"] < 2e-3 and got["observed_error"] < 2e-3
+    laws["h0"] = {h0: -21.577, x: 5.0}
+    found.rhs = {n: sum(c * f for f, c in eq.items()) for n, eq in laws.items()}
+    assert not score_structure(found, d)["exact"]

@@ -2,6 +2,7 @@
 rate's second-order weak form) and the structured hidden-series smoother."""
 
 from dataclasses import make_dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import pysindy as ps
@@ -10,7 +11,7 @@ import sympy as sp
 
 from latentsindy import systems
 from latentsindy._stage_two.closure import ClosureFit, fit_closure, fit_rate_closure, path
-from latentsindy._stage_two.hypotheses import fuller_closure, gauge_free_support
+from latentsindy._stage_two.hypotheses import _carrier_pairs, fuller_closure, gauge_free_support
 from latentsindy._stage_two.smoother import Structure, fit_hidden, prune_constants, single_term
 
 
@@ -287,3 +288,29 @@ def test_a_structure_is_evaluated_once_per_context(monkeypatch):
     assert fresh.evaluated == {}
     np.testing.assert_array_equal(uncached.hidden[0], first.hidden[0])
     assert uncached.score == first.score
+
+
+def test_every_pair_of_carriers_of_two_equations_is_one_shared_hidden_state():
+    """Two equations with two carriers each: four shared structures, each with the
+    first carrier as pivot and the second loaded by the slope of the affine relation of
+    their series (2 for h and 2 h + 1); a carrier whose series is not finite gives
+    none."""
+    t = np.linspace(0, 10, 300)
+    h = np.sin(t)
+    support = np.zeros((2, 3), dtype=bool)
+    support[0, 2] = support[1, 2] = True
+
+    def carrier(i, k, series, score=0.1):
+        return SimpleNamespace(structure=single_term(2, 3, i, k, support), score=score,
+                               fit=SimpleNamespace(misfit=1.0, hidden=[series[:, None]]))
+
+    every = {0: [carrier(0, 0, h), carrier(0, 1, np.cos(t))],
+             1: [carrier(1, 0, 2 * h + 1), carrier(1, 1, h**2),
+                 carrier(1, 2, h, score=np.nan)]}
+    pairs = _carrier_pairs(every, support)
+    assert len(pairs) == 4
+    assert all(p.n_hidden == 1 and p.pivots[0][0] == 0 for p in pairs)
+    (same,) = [p for p in pairs if p.pivots == ((0, 0),) and p.loadings[1, 0, 0] != 0]
+    assert same.loadings[0, 0, 0] == 1.0
+    assert same.loadings[1, 0, 0] == pytest.approx(2.0, rel=1e-9)
+    assert same.support[0, 0] and same.support[1, 0] and same.support[0, 2]
