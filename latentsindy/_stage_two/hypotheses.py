@@ -408,14 +408,12 @@ def _carrier_pairs(every, support):
     but with the other equation unexplained, z in dx/dt (sigma y / z) and x^2 in dz/dt
     (y / x) closed better, and together they are no one hidden state."""
     n_obs, n_feat = support.shape
+    usable = {i: [(p, s) for p in ps if (s := _series(p)) is not None]
+              for i, ps in every.items()}
     out = []
-    for i, j in itertools.combinations(sorted(every), 2):
-        for p in every[i]:
-            a = _series(p)
-            for q in every[j]:
-                b = _series(q)
-                if a is None or b is None:
-                    continue
+    for i, j in itertools.combinations(sorted(usable), 2):
+        for p, a in usable[i]:
+            for q, b in usable[j]:
                 (pi, pk), = p.structure.pivots
                 (qi, qk), = q.structure.pivots
                 loads = np.zeros((n_obs, n_feat, 1))
