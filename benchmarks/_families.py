@@ -375,6 +375,78 @@ def _lorenz_y(rng, noise, seed, sampling=None):
                 (("x", "1"),), with_observed=True)
 
 
+
+# ---------------------------- fresh held-out systems (added 2026-11-27, not developed on)
+def _selkov(rng, noise, seed, sampling=None):
+    """Sel'kov's glycolytic oscillator seen through x: xdot = -x + a y + x^2 y, ydot =
+    b - a y - x^2 y (a limit cycle); y is the coefficient of x^2 in dx/dt (a y that of
+    1, so one hidden state is seen through two terms of one equation)."""
+    p = {"a": rng.uniform(0.06, 0.1), "b": rng.uniform(0.5, 0.7)}
+    x0 = (rng.uniform(0.5, 1.5), rng.uniform(0.5, 1.5))
+    t = _grid(sampling, 60.0)
+    clean, noisy = _simulated(lambda s: [-s[0] + p["a"] * s[1] + s[0] ** 2 * s[1],
+                                         p["b"] - p["a"] * s[1] - s[0] ** 2 * s[1]],
+                              x0, t, noise, seed)
+    x, y = _sym("xy")
+    a, b = sp.symbols("a b")
+    truth = {x: -x + a * y + x**2 * y, y: b - a * y - x**2 * y}
+    return Draw("selkov", p, t, noisy[:, :1], clean[:, :1], ("x",), clean[:, 1:],
+                {"rhs": truth, "hidden": [y], "values": {a: p["a"], b: p["b"]}},
+                (("x", "x^2"),), with_observed=True)
+
+
+def _competition(rng, noise, seed, sampling=None):
+    """Two species competing for one resource, seen through x: xdot = x (1 - x - A y),
+    ydot = r y (1 - y - B x), from small populations to coexistence (a transient); A y
+    is the coefficient of x, whose law needs h^2."""
+    p = {"A": rng.uniform(0.5, 0.9), "B": rng.uniform(0.5, 0.9), "r": rng.uniform(0.6, 1.5)}
+    x0 = (rng.uniform(0.02, 0.1), rng.uniform(0.02, 0.1))
+    t = _grid(sampling, 15.0)
+    clean, noisy = _simulated(lambda s: [s[0] * (1 - s[0] - p["A"] * s[1]),
+                                         p["r"] * s[1] * (1 - s[1] - p["B"] * s[0])],
+                              x0, t, noise, seed)
+    x, y = _sym("xy")
+    sa, sb, r = sp.symbols("A B r")
+    truth = {x: x * (1 - x - sa * y), y: r * y * (1 - y - sb * x)}
+    return Draw("competition", p, t, noisy[:, :1], clean[:, :1], ("x",), clean[:, 1:],
+                {"rhs": truth, "hidden": [y],
+                 "values": {sa: p["A"], sb: p["B"], r: p["r"]}},
+                (("x", "x"),), with_observed=True)
+
+
+def _sprott_b(rng, noise, seed, sampling=None):
+    """Sprott's chaotic system B, x and y observed: xdot = a y z, ydot = x - y, zdot =
+    b - x y; z hidden, the coefficient of y in dx/dt (its law has no hidden term)."""
+    p = {"a": rng.uniform(0.9, 1.1), "b": rng.uniform(0.9, 1.1)}
+    x0 = rng.uniform(-1, 1, 3)
+    t = _grid(sampling, 100.0)
+    clean, noisy = _simulated(lambda s: [p["a"] * s[1] * s[2], s[0] - s[1],
+                                         p["b"] - s[0] * s[1]], x0, t, noise, seed)
+    x, y, z = _sym("xyz")
+    a, b = sp.symbols("a b")
+    truth = {x: a * y * z, y: x - y, z: b - x * y}
+    return Draw("sprott_b", p, t, noisy[:, :2], clean[:, :2], ("x", "y"), clean[:, 2:],
+                {"rhs": truth, "hidden": [z], "values": {a: p["a"], b: p["b"]}},
+                (("x", "y"),), with_observed=True)
+
+
+def _vdp_velocity(rng, noise, seed, sampling=None):
+    """Van der Pol seen through its velocity y: ydot = mu (1 - x^2) y - x with x hidden,
+    which enters through two terms, one of them nonlinearly (x^2 y)."""
+    p = {"mu": rng.uniform(0.5, 2.0)}
+    phase = rng.uniform(0, 2 * np.pi)
+    x0 = (2.0 * np.cos(phase), 2.0 * np.sin(phase))
+    t_end = 6 * (2 * np.pi + 1.6 * p["mu"])
+    t = _grid(sampling, t_end)
+    clean, noisy = _simulated(lambda s: [s[1], p["mu"] * (1 - s[0] ** 2) * s[1] - s[0]],
+                              x0, t, noise, seed)
+    x, y = _sym("xy")
+    mu = sp.Symbol("mu")
+    truth = {x: y, y: mu * (1 - x**2) * y - x}
+    return Draw("vdp_velocity", p, t, noisy[:, 1:], clean[:, 1:], ("y",), clean[:, :1],
+                {"rhs": truth, "hidden": [x], "values": {mu: p["mu"]}}, (("y", "1"),),
+                with_observed=True)
+
 FAMILIES = {
     f.name: f for f in [
         Family("lotka_volterra", "prey-only Lotka-Volterra (predator hidden)",
@@ -422,6 +494,16 @@ UNSEEN = {
                "law needs x^3)", lambda: ps.PolynomialLibrary(degree=3), _duffing),
         Family("lorenz_y", "Lorenz, x and z observed (y hidden, seen through two terms)",
                lambda: ps.PolynomialLibrary(degree=2), _lorenz_y),
+        # added 2026-11-27 and run once as they came, to check the defaults afresh
+        Family("selkov", "Sel'kov glycolysis, x observed (y hidden, the coefficient of x^2 "
+               "and, times a, of 1)", lambda: ps.PolynomialLibrary(degree=3), _selkov),
+        Family("competition", "two competing species, x observed (y hidden; a transient "
+               "to coexistence)", lambda: ps.PolynomialLibrary(degree=2, include_bias=False),
+               _competition),
+        Family("sprott_b", "Sprott's chaotic system B, x and y observed (z hidden)",
+               lambda: ps.PolynomialLibrary(degree=2), _sprott_b),
+        Family("vdp_velocity", "Van der Pol seen through its velocity (x hidden, also "
+               "inside x^2 y)", lambda: ps.PolynomialLibrary(degree=3), _vdp_velocity),
     ]
 }
 ALL_FAMILIES = {**FAMILIES, **UNSEEN}

@@ -9,7 +9,9 @@ import numpy as np
 import sympy as sp
 
 from .._core.timing import timed
+from .beyond import beyond_terms
 from .checks import (
+    beyond_doubts,
     doubts,
     exchange_doubts,
     first_integral_doubt,
@@ -155,9 +157,17 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
         + exchange_doubts(exchangeable_terms(best), system, rename, names_map)
         + weak_doubts(weakly_supported_terms(best), system, rename, names_map)
         + missing_doubts(nearly_needed_terms(best), system, rename, names_map)
+        + beyond_doubts(*_beyond(best, ctx), rename, names_map)
         + observed_function_doubts(system, names_map))
     free = free_run_doubt(result, trajectories) if best.scored else ()
     return dataclasses.replace(result, doubts=result.doubts + free) if free else result
+
+
+def _beyond(best, ctx):
+    """(found, extended system) of :func:`.beyond.beyond_terms`, as ``beyond_doubts``
+    takes them."""
+    extended, found = beyond_terms(best, ctx.feature_exprs, ctx.free_rows)
+    return found, extended
 
 
 def _static_notes(terms, names):

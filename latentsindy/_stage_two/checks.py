@@ -10,7 +10,7 @@ import sympy as sp
 from scipy.integrate import solve_ivp
 
 from .first_integral import integrated_system
-from .observed_function import observed_function
+from .observed_function import observed_function, state_function
 from .terms import MARGIN
 
 # A closed system reproduces held-out data when its score (held-out misfit in noise
@@ -232,6 +232,22 @@ def first_integral_doubt(verdict, names):
             "dynamics",)
 
 
+def beyond_doubts(found, system, rename, names_map):
+    """A sentence for the terms outside every candidate system that the data call for
+    (:mod:`.beyond`): the nearest ``MISSING_SHOWN`` named, the rest counted."""
+    if not found:
+        return ()
+    shown = "; ".join(f"{_term_text(cell, system, rename, names_map)} (misfit "
+                      f"{change:+.3g} residual variances, a term costs {price:.3g})"
+                      for cell, change, price in found[:MISSING_SHOWN])
+    more = (f", and {len(found) - MISSING_SHOWN} more" if len(found) > MISSING_SHOWN
+            else "")
+    return (f"the data call for terms no candidate system held: {shown}{more}. The law "
+            "found is probably an approximation of one that needs higher powers in the "
+            "hidden laws or a hidden state in more observed terms; try a closure_library "
+            "of higher degree, hidden_terms, or more data",)
+
+
 def observed_function_doubts(system, names_map):
     """A doubt per hidden state that is a function of the observed states
     (:mod:`.observed_function`): it is no hidden variable, only a way of writing terms
@@ -239,10 +255,21 @@ def observed_function_doubts(system, names_map):
     out = []
     for k in range(system.n_observed, len(system.state_names)):
         found = observed_function(system, k)
-        if found is None:
+        several = len(system.state_names) - system.n_observed > 1
+        other = state_function(system, k) if found is None and several else None
+        if found is None and other is None:
             continue
         name = names_map.get(system.state_names[k], system.state_names[k])
-        shown = found.xreplace({f: sp.Float(f, 4) for f in found.atoms(sp.Float)})
+        shown = (found if other is None else other).xreplace(
+            {f: sp.Float(f, 4) for f in (found if other is None else other).atoms(sp.Float)}
+            | {s: sp.Symbol(names_map.get(s.name, s.name), real=True)
+               for s in system.symbols})
+        if other is not None:
+            out.append(f"{name} is a function of the other states, {name} = {shown} + "
+                       f"constant (a first integral of the system): the system is a lifted "
+                       f"form of one with a hidden state fewer, which did not reproduce the "
+                       f"data as well when refitted")
+            continue
         out.append(f"{name} is a function of the observed states, {name} = {shown} + "
                    f"constant (its law is that function's time derivative along the "
                    f"system): not a hidden variable, but terms the closure library lacks; "

@@ -83,12 +83,27 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
         else:
             verdicts.append(unscored(t, "rejected"))
     ordered, uncertain = rank(verdicts)
+    reduced = None
+    if ordered and ordered[0].scored and not ordered[0].proposal.nested:
+        winner = ordered[0]
+        reduced = restate.function_reduced(winner, options)
+        if reduced is not None:
+            if reduced.scored and reduced.cv <= max(winner.cv + winner.cv_se, TIE):
+                # one hidden state was a function of the others (a first integral): the
+                # same dynamics with one state fewer and as many parameters (its
+                # initial value became the substitution's constant)
+                verdicts = [v for v in verdicts if v is not winner]
+            verdicts = verdicts + [reduced]
+            ordered, uncertain = rank(verdicts)
+            winner = ordered[0]
     if ordered and ordered[0].scored and not ordered[0].proposal.nested:
         # the winner restated: one hidden state where its rate law has a first integral,
         # or shifted to absorb its observed terms; and as the coefficient of another term
         winner = ordered[0]
-        restated = [restate.integrated(winner, options) or restate.shifted(winner, ctx, options),
-                    restate.regauged(winner, ctx, options)]
+        # (a system reduced by a first integral has no closure of its own to shift in)
+        restated = [restate.regauged(winner, ctx, options)] if winner is reduced else [
+            restate.integrated(winner, options) or restate.shifted(winner, ctx, options),
+            restate.regauged(winner, ctx, options)]
         restated = [v for v in restated if v is not None]
         if restated:
             return rank(verdicts + restated)

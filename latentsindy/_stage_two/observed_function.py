@@ -44,12 +44,17 @@ TOLERANCE = 1e-8  # relative mismatch of the law's coefficients accepted as roun
 NEAR = 0.01
 
 
-def observed_function(system, state: int):
-    """``F`` (a polynomial of the observed states without constant term) whose time
-    derivative along ``system`` is the law of state ``state`` (a hidden one); None when
-    there is none (or the law is zero: a constant, reported elsewhere)."""
+def observed_function(system, state: int, over=None):
+    """``F`` (a polynomial without constant term of the observed states, or of the
+    states ``over``, indices that must not include ``state``) whose time derivative
+    along ``system`` is the law of state ``state`` (a hidden one); None when there is
+    none (or the law is zero: a constant, reported elsewhere)."""
     symbols = system.symbols
-    observed = symbols[:system.n_observed]
+    over = range(system.n_observed) if over is None else over
+    if state in over:
+        raise ValueError(f"a state cannot be a function of itself (state {state}, over "
+                         f"{list(over)})")
+    observed = [symbols[i] for i in over]
     rhs = system.rhs()
     target = sp.expand(rhs[symbols[state].name])
     if target == 0 or not observed:
@@ -98,6 +103,38 @@ def trajectory_function(trajectories, n_observed: int, state: int, symbols):
     return None
 
 
+def state_function(system, state: int):
+    """``F`` (a polynomial of the observed states and of the other hidden states, no
+    constant term, not using ``state``) whose time derivative along ``system`` is the
+    law of hidden state ``state`` exactly; None when there is none.
+
+    Then ``state - F`` is a first integral of the system: the state is no hidden
+    variable of its own but a function of the others, and the system is a lifted form
+    of a smaller one. Van der Pol seen through its velocity y came back as
+    ``dy/dt = h0 + h1 y``, ``dh0/dt = -y``, ``dh1/dt = 2 mu h0 y``: ``h1 + mu h0^2`` is
+    conserved, and ``h1 = mu (1 - h0^2)`` gives Van der Pol with one hidden state."""
+    others = [i for i in range(len(system.state_names)) if i != state]
+    return observed_function(system, state, over=others)
+
+
+def function_reduced_system(verdict, state: int):
+    """The winner without hidden state ``state`` where it is an exact function of the
+    other states (:func:`state_function`): (system, guesses, candidates) with ``F + c``
+    substituted (``c`` the conserved quantity's mean along the fitted trajectories), or
+    None. ``candidates``: the lifted system's candidate terms in the other hidden laws
+    that do not involve the state."""
+    system = verdict.system
+    if not system.n_observed <= state < len(system.state_names):
+        return None
+    trajectories = verdict.problem.trajectories(verdict.fit)
+    if not all(np.all(np.isfinite(tr)) for tr in trajectories):
+        return None
+    found = state_function(system, state)
+    if found is None:
+        return None
+    return _substituted(verdict, state, found, trajectories, exact=True)
+
+
 def reduced_system(verdict):
     """The winner without its nested state where that state is a function of the
     observed states: (system, guesses, candidates) with ``F + c`` substituted (``F``
@@ -112,21 +149,30 @@ def reduced_system(verdict):
     trajectories = verdict.problem.trajectories(verdict.fit)
     if not all(np.all(np.isfinite(tr)) for tr in trajectories):
         return None
-    symbols = system.symbols
-    n_obs = system.n_observed
     found = observed_function(system, child)
-    if found is not None:
-        value = sp.lambdify(symbols[:n_obs], found, modules="numpy")
-        found = found + sp.Float(float(np.mean(np.concatenate([
-            tr[:, child] - np.broadcast_to(value(*tr[:, :n_obs].T), (len(tr),))
-            for tr in trajectories]))))
-    else:
-        found = trajectory_function(trajectories, n_obs, child, symbols)
+    if found is None:
+        found = trajectory_function(trajectories, system.n_observed, child, system.symbols)
         if found is None:
             return None
-    names = system.state_names[:child]
+        return _substituted(verdict, child, found, trajectories, exact=False)
+    return _substituted(verdict, child, found, trajectories, exact=True)
+
+
+def _substituted(verdict, state, found, trajectories, exact):
+    """(system, guesses, candidates): ``verdict``'s system with ``state = found`` (plus,
+    where ``exact``, the conserved quantity's mean along ``trajectories``) substituted
+    into the other laws; None if they are no polynomials."""
+    system = verdict.system
+    symbols = system.symbols
+    n_obs = system.n_observed
+    if exact:
+        value = sp.lambdify(symbols, found, modules="numpy")
+        found = found + sp.Float(float(np.mean(np.concatenate([
+            tr[:, state] - np.broadcast_to(value(*tr.T), (len(tr),))
+            for tr in trajectories]))))
+    names = system.state_names[:state] + system.state_names[state + 1:]
     rhs = system.rhs()
-    laws = {n: sp.expand(rhs[n].subs(symbols[child], found)) for n in names}
+    laws = {n: sp.expand(rhs[n].subs(symbols[state], found)) for n in names}
     rows = polynomial_rows(laws, names)
     if rows is None:
         return None
@@ -135,15 +181,15 @@ def reduced_system(verdict):
     # restate a hidden state, shifted by a function of the observed states)
     pool = verdict.candidates
     cells = [] if pool is None else [
-        (i, f) for i in range(n_obs, child)
+        (i, f) for i in range(n_obs, len(system.state_names)) if i != state
         for f, allowed in zip(system.features, pool[i], strict=True)
-        if allowed and symbols[child] not in f.free_symbols]
+        if allowed and symbols[state] not in f.free_symbols]
     leading = tuple(dict.fromkeys(f for _, f in cells))
     reduced = system_from_rows(names, n_obs, rows, system, leading=leading, kept_rows=n_obs)
     candidates = np.zeros_like(reduced.free)
     for i, f in cells:
-        candidates[i, reduced.features.index(f)] = True
-    guesses = [np.delete(tr, child, axis=1) for tr in trajectories]
+        candidates[i - (i > state), reduced.features.index(f)] = True
+    guesses = [np.delete(tr, state, axis=1) for tr in trajectories]
     return reduced, guesses, candidates & ~reduced.free
 
 

@@ -21,6 +21,7 @@ well the fitted system reproduces data it was not fitted to, for chaotic systems
 from __future__ import annotations
 
 import contextlib
+import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -165,6 +166,15 @@ class Problem:
             starts.append(np.column_stack([np.interp(g.starts, t, col) for col in gs.T]))
         self.initial_starts = np.vstack(starts)
         self.n_data = int(sum(int(g.mask.sum()) for g in self.groups)) * self.n_obs
+
+    def for_system(self, system) -> Problem:
+        """This problem (the same data, segments, grid and scales) for ``system``, whose
+        features may differ from this one's."""
+        other = copy.copy(self)
+        other.system = system
+        other.integrator = Integrator(system, self.bound, device=self.options.device)
+        other._integrators = {system.free.tobytes(): other.integrator}
+        return other
 
     def integrator_for(self, system) -> Integrator:
         """The integrator of ``system`` (same features, its own free coefficients)."""

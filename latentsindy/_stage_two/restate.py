@@ -8,7 +8,9 @@ selected and scored like any proposal, so that ranking can prefer the simpler fo
 * :func:`nested_shifted`: a nested state shifted out of its flat direction
   (:mod:`.nested`);
 * :func:`reduced`: a nested state that is a function of the observed states
-  substituted out (:mod:`.observed_function`).
+  substituted out (:mod:`.observed_function`);
+* :func:`function_reduced`: one of several hidden states that is an exact function of
+  the other states substituted out (:func:`.observed_function.state_function`).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from .first_integral import integrated_proposal, integrated_system
 from .gauge import shifted_guesses, shifted_proposal, shifted_system
 from .hypotheses import Context, close
 from .nested import shifted_nested_system
-from .observed_function import reduced_proposal, reduced_system
+from .observed_function import function_reduced_system, reduced_proposal, reduced_system
 from .refine import Problem
 from .shooting import BlowUp
 from .smoother import HiddenFit, single_term
@@ -141,6 +143,32 @@ def reduced(verdict: Verdict, options) -> Verdict | None:
     proposal = reduced_proposal(verdict.proposal, guesses, system.n_observed, name)
     data = (verdict.problem.times, verdict.problem.observed)
     return restated(proposal, system, guesses, data, verdict, options, candidates)
+
+
+def function_reduced(verdict: Verdict, options) -> Verdict | None:
+    """A winner with several first-order hidden states (none nested) without the last
+    one that is an exact function of the others, refined, its terms selected and
+    scored; None if there is none or it cannot be integrated."""
+    p, system = verdict.proposal, verdict.system
+    if p.nested or p.order != 1 or p.structure.n_hidden < 2:
+        return None
+    n_obs = system.n_observed
+    for state in reversed(range(n_obs, len(system.state_names))):
+        found = function_reduced_system(verdict, state)
+        if found is None:
+            continue
+        reduced_sys, guesses, candidates = found
+        a = state - n_obs
+        st = p.structure
+        structure = replace(st, loadings=np.delete(st.loadings, a, axis=-1),
+                            pivots=st.pivots[:a] + st.pivots[a + 1:])
+        proposal = replace(p, structure=structure,
+                           hidden=[g[:, n_obs:] for g in guesses],
+                           origin=p.origin + f", {system.state_names[state]} as a function "
+                                             "of the other states")
+        data = (verdict.problem.times, verdict.problem.observed)
+        return restated(proposal, reduced_sys, guesses, data, verdict, options, candidates)
+    return None
 
 
 def integrated(verdict: Verdict, options) -> Verdict | None:
