@@ -260,10 +260,9 @@ def _epidemic(rng, noise, seed, sampling=None):
 
 
 # ------------------------------------------- held-out systems (not in the default table)
-def _van_der_pol(rng, noise, seed, sampling=None):
-    """Van der Pol seen through x: xdot = y, ydot = mu (1 - x^2) y - x. The coefficient
-    of 1 in dx/dt is y; with x and x^3 shown on their own it is the Lienard variable
-    h = y - mu (x - x^3 / 3), whose law is hdot = -x."""
+def _vdp_simulated(rng, noise, seed, sampling):
+    """Van der Pol, xdot = y, ydot = mu (1 - x^2) y - x (mu 0.5-2, about six cycles):
+    (params, times, clean, noisy, truth, mu)."""
     p = {"mu": rng.uniform(0.5, 2.0)}
     phase = rng.uniform(0, 2 * np.pi)
     x0 = (2.0 * np.cos(phase), 2.0 * np.sin(phase))
@@ -273,10 +272,17 @@ def _van_der_pol(rng, noise, seed, sampling=None):
                               x0, t, noise, seed)
     x, y = _sym("xy")
     mu = sp.Symbol("mu")
-    truth = {x: y, y: mu * (1 - x**2) * y - x}
+    return p, t, clean, noisy, {x: y, y: mu * (1 - x**2) * y - x}, mu
+
+
+def _van_der_pol(rng, noise, seed, sampling=None):
+    """Van der Pol seen through x: xdot = y, ydot = mu (1 - x^2) y - x. The coefficient
+    of 1 in dx/dt is y; with x and x^3 shown on their own it is the Lienard variable
+    h = y - mu (x - x^3 / 3), whose law is hdot = -x."""
+    p, t, clean, noisy, truth, mu = _vdp_simulated(rng, noise, seed, sampling)
     return Draw("van_der_pol", p, t, noisy[:, :1], clean[:, :1], ("x",), clean[:, 1:],
-                {"rhs": truth, "hidden": [y], "values": {mu: p["mu"]}}, (("x", "1"),),
-                with_observed=True)
+                {"rhs": truth, "hidden": [sp.Symbol("y", real=True)],
+                 "values": {mu: p["mu"]}}, (("x", "1"),), with_observed=True)
 
 
 def _brusselator(rng, noise, seed, sampling=None):
@@ -433,19 +439,11 @@ def _sprott_b(rng, noise, seed, sampling=None):
 def _vdp_velocity(rng, noise, seed, sampling=None):
     """Van der Pol seen through its velocity y: ydot = mu (1 - x^2) y - x with x hidden,
     which enters through two terms, one of them nonlinearly (x^2 y)."""
-    p = {"mu": rng.uniform(0.5, 2.0)}
-    phase = rng.uniform(0, 2 * np.pi)
-    x0 = (2.0 * np.cos(phase), 2.0 * np.sin(phase))
-    t_end = 6 * (2 * np.pi + 1.6 * p["mu"])
-    t = _grid(sampling, t_end)
-    clean, noisy = _simulated(lambda s: [s[1], p["mu"] * (1 - s[0] ** 2) * s[1] - s[0]],
-                              x0, t, noise, seed)
-    x, y = _sym("xy")
-    mu = sp.Symbol("mu")
-    truth = {x: y, y: mu * (1 - x**2) * y - x}
+    p, t, clean, noisy, truth, mu = _vdp_simulated(rng, noise, seed, sampling)
     return Draw("vdp_velocity", p, t, noisy[:, 1:], clean[:, 1:], ("y",), clean[:, :1],
-                {"rhs": truth, "hidden": [x], "values": {mu: p["mu"]}}, (("y", "1"),),
-                with_observed=True)
+                {"rhs": truth, "hidden": [sp.Symbol("x", real=True)],
+                 "values": {mu: p["mu"]}}, (("y", "1"),), with_observed=True)
+
 
 FAMILIES = {
     f.name: f for f in [
