@@ -242,7 +242,7 @@ def beyond_doubts(found, system, rename, names_map):
                       for cell, change, price in found[:MISSING_SHOWN])
     more = (f", and {len(found) - MISSING_SHOWN} more" if len(found) > MISSING_SHOWN
             else "")
-    return (f"the data call for terms no candidate system held: {shown}{more}. The law "
+    return (f"the data strongly call for terms no candidate system held: {shown}{more}. The law "
             "found is probably an approximation of one that needs higher powers in the "
             "hidden laws or a hidden state in more observed terms; try a closure_library "
             "of higher degree, hidden_terms, or more data",)
