@@ -244,8 +244,9 @@ def beyond_doubts(found, system, rename, names_map):
             else "")
     return (f"the data strongly call for terms no candidate system held: {shown}{more}. The law "
             "found is probably an approximation of one that needs higher powers in the "
-            "hidden laws or a hidden state in more observed terms; try a closure_library "
-            "of higher degree, hidden_terms, or more data",)
+            "hidden laws or a hidden state in more observed terms; try hidden_terms, more "
+            "data, or a closure_library of higher degree (which can find another "
+            "approximation: compare its result with this one)",)
 
 
 def observed_function_doubts(system, names_map):
