@@ -146,6 +146,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
     # an unscored winner (every candidate blew up or does not join) has no score
     score, score_se = (best.cv, best.cv_se) if best.scored else (math.inf, math.nan)
     notes = _static_notes(terms, names)
+    extended, beyond = beyond_terms(best, ctx.feature_exprs, ctx.free_rows)
     result = HiddenDiscovery(
         ctx.times[0], ctx.observed[0], hidden[0], stds[0][:, system.n_observed:],
         tuple(observed), tuple(names), states, terms, coefs, score, score_se,
@@ -157,17 +158,10 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
         + exchange_doubts(exchangeable_terms(best), system, rename, names_map)
         + weak_doubts(weakly_supported_terms(best), system, rename, names_map)
         + missing_doubts(nearly_needed_terms(best), system, rename, names_map)
-        + beyond_doubts(*_beyond(best, ctx), rename, names_map)
+        + beyond_doubts(beyond, extended, rename, names_map)
         + observed_function_doubts(system, names_map))
     free = free_run_doubt(result, trajectories) if best.scored else ()
     return dataclasses.replace(result, doubts=result.doubts + free) if free else result
-
-
-def _beyond(best, ctx):
-    """(found, extended system) of :func:`.beyond.beyond_terms`, as ``beyond_doubts``
-    takes them."""
-    extended, found = beyond_terms(best, ctx.feature_exprs, ctx.free_rows)
-    return found, extended
 
 
 def _static_notes(terms, names):

@@ -254,17 +254,17 @@ def observed_function_doubts(system, names_map):
     (:mod:`.observed_function`): it is no hidden variable, only a way of writing terms
     the closure library lacks."""
     out = []
+    several = len(system.state_names) - system.n_observed > 1
     for k in range(system.n_observed, len(system.state_names)):
         found = observed_function(system, k)
-        several = len(system.state_names) - system.n_observed > 1
         other = state_function(system, k) if found is None and several else None
-        if found is None and other is None:
+        expr = found if found is not None else other
+        if expr is None:
             continue
         name = names_map.get(system.state_names[k], system.state_names[k])
-        shown = (found if other is None else other).xreplace(
-            {f: sp.Float(f, 4) for f in (found if other is None else other).atoms(sp.Float)}
-            | {s: sp.Symbol(names_map.get(s.name, s.name), real=True)
-               for s in system.symbols})
+        shown = expr.xreplace({f: sp.Float(f, 4) for f in expr.atoms(sp.Float)}
+                              | {s: sp.Symbol(names_map.get(s.name, s.name), real=True)
+                                 for s in system.symbols})
         if other is not None:
             out.append(f"{name} is a function of the other states, {name} = {shown} + "
                        f"constant (a first integral of the system): the system is a lifted "

@@ -126,11 +126,11 @@ def function_reduced_system(verdict, state: int):
     system = verdict.system
     if not system.n_observed <= state < len(system.state_names):
         return None
+    found = state_function(system, state)  # symbolic and cheap: before integrating
+    if found is None:
+        return None
     trajectories = verdict.problem.trajectories(verdict.fit)
     if not all(np.all(np.isfinite(tr)) for tr in trajectories):
-        return None
-    found = state_function(system, state)
-    if found is None:
         return None
     return _substituted(verdict, state, found, trajectories, exact=True)
 
