@@ -10,9 +10,11 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
+from .._core.threads import single_thread
 from .._core.timing import timed
 from .decisions import between_phases
 from .flat_adam import FlatAdam
+from .numpy_step import NumpyStep, supported
 
 _EPS = torch.finfo(torch.float32).eps
 TV_SHARE = 0.5  # share of total variation in the roughness (see roughness)
@@ -297,24 +299,42 @@ def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
 def _train_phase(model, opt, phase, steps, data, options, bar, verbose):
     """``steps`` optimiser steps of one phase (learning rate on a cosine schedule)."""
     theta, xdot, weights, inputs, noise_var, free_rows = data
+    # on a CPU the loss and its gradient written out in numpy (numpy_step.py): the same
+    # model and loss without the framework's overhead per operation, on one thread
+    if supported(model, theta):
+        by_hand = NumpyStep(model, theta, xdot, weights, inputs, noise_var, options.threshold,
+                            free_rows)
+        with single_thread():
+            return _steps(model, opt, phase, steps, data, options, bar, verbose, by_hand)
+    return _steps(model, opt, phase, steps, data, options, bar, verbose, None)
+
+
+def _steps(model, opt, phase, steps, data, options, bar, verbose, by_hand):
+    theta, xdot, weights, inputs, noise_var, free_rows = data
     history, lr0 = [], opt.lr
     for step in range(steps):
         opt.lr = _cosine(step, steps, lr0, lr0 * 1e-2)
-        terms = loss_terms(model, theta, xdot, weights, inputs, noise_var,
-                           options.threshold, free_rows.to(theta.dtype))
         warming = phase == 1 and step < options.warmup * steps
         if phase == 1:
             # warm-up: fit first, so a term whose time average is small but whose
             # variation matters is not pruned before the generator learns it
-            sparsity = 0.0 if warming else options.sparsity
-            reg = sparsity * terms["l1"] + options.smoothness * terms["rough"]
+            l1_weight, rough_weight = (0.0 if warming else options.sparsity), options.smoothness
         else:
             # Refit: smoothing follows the noise level (exact fits on clean data),
             # capped at the normalised weight so rich variation is not flattened.
-            reg = options.refit_smoothness * terms["rough_bayes"] * terms["rough"]
-        loss = terms["mse"] + options.kl_weight * terms["kl"] + reg
-        opt.zero_grad()
-        loss.backward()
+            l1_weight, rough_weight = 0.0, options.refit_smoothness
+        if by_hand is not None:
+            terms, loss = by_hand(l1_weight, rough_weight, options.kl_weight, phase == 2)
+        else:
+            terms = loss_terms(model, theta, xdot, weights, inputs, noise_var,
+                               options.threshold, free_rows.to(theta.dtype))
+            scale = terms["rough_bayes"] if phase == 2 else 1.0
+            reg = rough_weight * scale * terms["rough"]
+            if phase == 1:
+                reg = l1_weight * terms["l1"] + reg
+            loss = terms["mse"] + options.kl_weight * terms["kl"] + reg
+            opt.zero_grad()
+            loss.backward()
         opt.step(max_norm=options.grad_clip)
         if ((step + 1) % options.prune_every == 0 and not warming
                 and (phase == 1 or step < steps // 2)):
@@ -325,7 +345,7 @@ def _train_phase(model, opt, phase, steps, data, options, bar, verbose):
                 1.0, (options.ramp - options.warmup) * steps)
             _prune(model, inputs, options.threshold * min(1.0, ramp), free_rows)
         record = {k: float(v.detach()) if torch.is_tensor(v) else v for k, v in terms.items()}
-        record.update(phase=phase, loss=float(loss.detach()))
+        record.update(phase=phase, loss=float(loss.detach()) if torch.is_tensor(loss) else loss)
         history.append(record)
         bar.update(1)
         if verbose and step % 50 == 0:

@@ -20,16 +20,15 @@ well the fitted system reproduces data it was not fitted to, for chaotic systems
 
 from __future__ import annotations
 
-import contextlib
 import copy
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sps
 import torch
-from threadpoolctl import threadpool_limits
 
 from .._core.derivatives import noise_level
+from .._core.threads import single_thread  # noqa: F401  (stage two's users import it here)
 from .._core.timing import timed
 from .field import ParametricSystem
 from .shooting import BlowUp, Integrator, NormalEquations, make_groups, solve
@@ -108,20 +107,6 @@ class Fit:
         """Standard errors of the free coefficients (covariance scaled by the residual
         variance), in the order of ``system.free_values()``."""
         return np.sqrt(np.maximum(np.diag(self.covariance), 0.0) * self.residual_variance)
-
-
-@contextlib.contextmanager
-def single_thread():
-    """Run torch and the BLAS on one thread inside the block: the refinement's tensors
-    and normal equations are small, and on them threading costs more than it gains
-    (torch 2.5x slower on 2 cores; the BLAS 10-15% of stage two on Lorenz)."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        with threadpool_limits(1):
-            yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 class Problem:

@@ -1,0 +1,114 @@
+"""The training step written out in numpy equals autograd's loss and gradient."""
+
+import numpy as np
+import pytest
+import torch
+
+from latentsindy._stage_one.estimator import sample_positions
+from latentsindy._stage_one.flat_adam import FlatAdam
+from latentsindy._stage_one.numpy_step import NumpyStep, supported
+from latentsindy._stage_one.training import CoefficientModel, loss_terms
+from latentsindy.generators.timevae import TimeVAE, TimeVAEOptions
+
+
+def _problem(n_traj=1, n_times=700, irregular=False, seed=0):
+    """A random timeVAE (non-zero output) inside a coefficient model, and normalised
+    data: two states, four library terms, a pinned constant and a pruned term."""
+    gen_ = torch.Generator().manual_seed(seed)
+    rand = lambda *s: torch.randn(*s, generator=gen_)  # noqa: E731
+    t = np.sort(np.random.default_rng(seed).uniform(0, 10, n_times)) if irregular else None
+    gen = TimeVAE(n_inputs=4, n_outputs=8, options=TimeVAEOptions(n_knots=64))
+    with torch.no_grad():
+        for p in gen.parameters():
+            p.copy_(0.3 * rand(*p.shape))
+    gen.allocate(n_times, None if t is None else sample_positions(t, "cpu"))
+    support = torch.ones(2, 4, dtype=torch.bool)
+    support[1, 3] = False
+    model = CoefficientModel(gen, rand(2, 4), support, torch.ones(2, 4))
+    model.pin_constant(0, 1, 0.7)
+    theta, xdot = rand(n_traj, n_times, 4), rand(n_traj, n_times, 2)
+    weights = 0.5 + torch.rand(n_traj, n_times, 2, generator=gen_)
+    inputs = rand(n_traj, 4, n_times)
+    return model, (theta, xdot, weights, inputs, 0.02, 0.05, torch.tensor([True, False]))
+
+
+def _autograd(model, data, l1_weight, rough_weight, rough_scaled, opt):
+    theta, xdot, weights, inputs, noise_var, threshold, free = data
+    torch.manual_seed(3)
+    terms = loss_terms(model, theta, xdot, weights, inputs, noise_var, threshold,
+                       free.to(theta.dtype))
+    scale = terms["rough_bayes"] if rough_scaled else 1.0
+    loss = (terms["mse"] + terms["kl"] + l1_weight * terms["l1"]
+            + rough_weight * scale * terms["rough"])
+    opt.zero_grad()
+    loss.backward()
+    return ({k: float(v.detach()) if torch.is_tensor(v) else v for k, v in terms.items()},
+            float(loss.detach()), opt.grad.clone())
+
+
+@pytest.mark.parametrize("n_traj, irregular, fit", [(1, False, True), (2, False, True),
+                                                    (1, True, True), (1, False, False),
+                                                    (1, True, False)])
+@pytest.mark.parametrize("phase", [1, 2])
+def test_loss_and_gradient_equal_autograd(n_traj, irregular, fit, phase):
+    """Every tensor's gradient; without the data misfit (``fit`` False: zero weights)
+    the penalties' own gradients are compared, which the misfit's would swamp."""
+    model, data = _problem(n_traj, irregular=irregular)
+    if not fit:
+        data = (data[0], data[1], 0.0 * data[2], *data[3:])
+    assert supported(model, data[0])
+    opt = FlatAdam([p for p in model.parameters() if p.requires_grad], lr=1e-3)
+    l1_weight, rough_weight = (0.1, 0.3) if phase == 1 else (0.0, 2.0)
+    terms, loss, grad = _autograd(model, data, l1_weight, rough_weight, phase == 2, opt)
+    step = NumpyStep(model, *data)
+    torch.manual_seed(3)  # the same latent noise
+    opt.zero_grad()
+    ours, our_loss = step(l1_weight, rough_weight, 1.0, phase == 2)
+    assert our_loss == pytest.approx(loss, rel=1e-4)  # float32 sums, rounded differently
+    for key, value in terms.items():
+        assert ours[key] == pytest.approx(value, rel=1e-4, abs=1e-9), key
+    offset = 0
+    for name, p in model.named_parameters():  # every tensor's gradient, one by one
+        n = p.numel()
+        ref, got = grad[offset:offset + n], opt.grad[offset:offset + n]
+        offset += n
+        # within 3e-4 of its own size (float32: the roughness's signs of near-zero
+        # differences can round either way), or a millionth of the whole (a sum that
+        # cancels to zero, such as a constant's gradient from the roughness alone)
+        assert float((got - ref).norm()) <= 3e-4 * float(ref.norm()) + 1e-6 * float(
+            grad.norm()), name
+    # the pinned constant and the pruned term get no gradient
+    assert float(model.constants.grad[0, 1]) == 0.0
+    assert float(model.constants.grad[1, 3]) == 0.0
+    opt.release()
+
+
+def test_gradient_check_against_finite_differences():
+    """A direction derivative of the loss in float64 arithmetic: the written-out
+    gradient is the loss's (not merely equal to autograd's)."""
+    model, data = _problem(n_times=300, seed=4)
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = FlatAdam(params, lr=1e-3)
+    step = NumpyStep(model, *data)
+    torch.manual_seed(3)
+    _, base = step(0.1, 0.3, 1.0, False)
+    direction = torch.randn(opt.flat.shape, generator=torch.Generator().manual_seed(1))
+    slope = float(opt.grad @ direction)
+    h = 1e-3
+    values = []
+    for sign in (1.0, -1.0):
+        with torch.no_grad():
+            opt.flat.add_(sign * h * direction)
+        torch.manual_seed(3)
+        values.append(step(0.1, 0.3, 1.0, False)[1])
+        with torch.no_grad():
+            opt.flat.sub_(sign * h * direction)
+    assert (values[0] - values[1]) / (2 * h) == pytest.approx(slope, rel=2e-2)
+    opt.release()
+
+
+def test_not_supported_off_the_cpu_float32_timevae():
+    model, data = _problem()
+    assert not supported(model, data[0].double())
+    model.generator.encoder_points = None  # a model file of version 1-2 reads every sample
+    assert not supported(model, data[0])
