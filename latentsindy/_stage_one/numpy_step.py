@@ -98,10 +98,15 @@ class _Conv:
 
 
 def _time_mean(a):
-    """Mean over the first axis (time) as one matrix-vector product: numpy's own
-    reduction over the rows of a (T, few) array loops over T short rows."""
-    ones = np.full(a.shape[0], 1.0 / a.shape[0], dtype=np.float32)
-    return (ones @ a.reshape(a.shape[0], -1)).reshape(a.shape[1:])
+    """Mean over the first axis (time), accumulated in float64, as one matrix-vector
+    product (numpy's own reduction over the rows of a (T, few) array loops over T short
+    rows). The precision matters: a constant's gradient is such a sum, of terms that
+    cancel near the optimum, and Adam scales whatever is left, rounding included, to a
+    full step (float32 accumulation cost a structure on a driven oscillator at 10%
+    noise that torch's cascade sums find)."""
+    ones = np.full(a.shape[0], 1.0 / a.shape[0])
+    return (ones @ a.reshape(a.shape[0], -1).astype(np.float64)).reshape(
+        a.shape[1:]).astype(np.float32)
 
 
 def _upsample(x):
@@ -196,7 +201,7 @@ class NumpyStep:
                                                     rough_scaled)
         kl = 0.5 * float(np.sum(mu * mu + np.exp(logvar) - 1.0 - logvar))
         kl_scale = 2.0 * self.noise_var / self.xdot.size
-        terms["kl"] = kl_scale * kl
+        terms = {"mse": terms.pop("mse"), "kl": kl_scale * kl, **terms}  # loss_terms' order
         self.constants_grad[...] = grad_const
         grad_z = self._decode_backward(grad_series, decoder_parts)
         c = np.float32(kl_weight * kl_scale)
@@ -235,9 +240,11 @@ class NumpyStep:
         grad_pooled = (w.T @ grad_out) / centred.shape[0]
         hidden = centred.shape[1]
         length = centred.shape[2]
+        # a channel with no spread (a dead GELU: every output exactly 0) gets no
+        # gradient through its standard deviation, as in torch's std backward
+        inv = np.divide(1.0, (length - 1) * std, out=np.zeros_like(std), where=std > 0)
         grad_h = (grad_pooled[None, :hidden, None] / length
-                  + grad_pooled[None, hidden:, None] * centred
-                  / ((length - 1) * std[:, :, None]))
+                  + grad_pooled[None, hidden:, None] * centred * inv[:, :, None])
         for k in range(len(self.enc) - 1, -1, -1):
             grad_h = self.enc[k].backward(grad_h * parts[k], need_input=k > 0)
 

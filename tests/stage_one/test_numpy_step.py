@@ -21,6 +21,9 @@ def _problem(n_traj=1, n_times=700, irregular=False, seed=0):
     with torch.no_grad():
         for p in gen.parameters():
             p.copy_(0.3 * rand(*p.shape))
+        # a dead channel: its GELU outputs are all exactly zero, so is their spread
+        gen.encoder[4].weight[0] = 0.0
+        gen.encoder[4].bias[0] = -50.0
     gen.allocate(n_times, None if t is None else sample_positions(t, "cpu"))
     support = torch.ones(2, 4, dtype=torch.bool)
     support[1, 3] = False
