@@ -24,21 +24,27 @@ import numpy as np
 import scipy.sparse as sparse
 import torch
 import torch.nn.functional as F
+from torch import nn
+
+from ..generators.timevae import _BASE, TimeVAE
 
 _INV_SQRT2 = np.float32(1.0 / math.sqrt(2.0))
 _INV_SQRT_2PI = np.float32(1.0 / math.sqrt(2.0 * math.pi))
 _LOGVAR_RANGE = (-12.0, 6.0)  # TimeVAE.encode's clamp
 
 
-def supported(model, theta) -> bool:
-    """Whether :class:`NumpyStep` can train ``model`` on ``theta`` (a timeVAE on a CPU
-    in float32, its encoder reading the series at the decoder's resolution)."""
-    from ..generators.timevae import TimeVAE
+def supported(model, *data) -> bool:
+    """Whether :class:`NumpyStep` can train ``model`` on the tensors ``data``: a
+    :class:`.training.CoefficientModel` around a timeVAE whose encoder reads the series
+    at the decoder's resolution, every parameter trained, everything in float32 on a
+    CPU. Anything else trains with autograd."""
+    from .training import CoefficientModel
 
-    gen = model.generator
-    return (type(gen) is TimeVAE and theta.device.type == "cpu"
-            and theta.dtype == torch.float32 and gen.encoder_points is not None
-            and all(p.dtype == torch.float32 for p in model.parameters()))
+    tensors = [*model.parameters(), *data]
+    return (type(model) is CoefficientModel and type(model.generator) is TimeVAE
+            and model.generator.encoder_points is not None
+            and all(p.requires_grad for p in model.parameters())
+            and all(x.device.type == "cpu" and x.dtype == torch.float32 for x in tensors))
 
 
 def _gelu(x):
@@ -119,6 +125,7 @@ def _upsample(x):
 
 
 def _upsample_backward(grad):
+    """The gradient of :func:`_upsample` by its input."""
     even, odd = grad[..., 2::2], grad[..., 1:-1:2]
     out = np.zeros((*grad.shape[:-1], grad.shape[-1] // 2), dtype=np.float32)
     out[..., 0] += grad[..., 0]
@@ -149,7 +156,9 @@ class NumpyStep:
 
     Parameters are read from their storage at every call, so the optimiser's updates and
     the model's in-place decisions (support, pinned constants) are seen; make a new
-    instance when the parameters get new storage (a new optimiser).
+    instance when the parameters get new storage (a new optimiser: a call after that is
+    an error). The data, the sample positions and the encoder's pooled input are fixed
+    at construction.
     """
 
     def __init__(self, model, theta, xdot, weights, inputs, noise_var, threshold, free_rows):
@@ -167,13 +176,15 @@ class NumpyStep:
                 inputs = F.adaptive_avg_pool1d(inputs, gen.encoder_points)
         self.enc_in = np.ascontiguousarray(inputs.numpy())
         length, self.enc = self.enc_in.shape[-1], []
-        for layer in gen.encoder[::2]:
-            self.enc.append(_Conv(layer, length))
-            length = self.enc[-1].n_out
-        self.ups, length = [], 32
-        for layer in gen.upsample[1::3]:
-            length *= 2
-            self.ups.append(_Conv(layer, length))
+        for layer in gen.encoder:
+            if isinstance(layer, nn.Conv1d):
+                self.enc.append(_Conv(layer, length))
+                length = self.enc[-1].n_out
+        self.ups, length = [], _BASE
+        for layer in gen.upsample:
+            if isinstance(layer, nn.Conv1d):
+                length *= 2  # each follows an upsampling by two
+                self.ups.append(_Conv(layer, length))
         self.n_times = self.theta.shape[1]
         self.interp, self.interp_t = _interpolation(gen, length, self.n_times)
         self.spacing = None
@@ -187,11 +198,15 @@ class NumpyStep:
                                         ("to_coefficients", gen.to_coefficients))}
         self.constants = model.constants.detach().numpy()
         self.constants_grad = model.constants.grad.numpy()
+        self._grad_owner = model.constants.grad
 
     def __call__(self, l1_weight, rough_weight, kl_weight, rough_scaled):
         """Loss terms (as :func:`.training.loss_terms`, floats) and the total loss
         ``mse + kl_weight kl + l1_weight l1 + rough_weight [rough_bayes] rough``
         (``rough_bayes`` only if ``rough_scaled``); the gradients are written."""
+        if self.model.constants.grad is not self._grad_owner:
+            raise RuntimeError("NumpyStep: the parameters' gradients have new storage (a new "
+                               "optimiser); make a new NumpyStep for it.")
         mu, logvar, raw_logvar, pooled_parts = self._encode()
         eps = torch.randn((1, *mu.shape), dtype=torch.float32).numpy()[0]
         std = np.exp(0.5 * logvar)

@@ -301,7 +301,7 @@ def _train_phase(model, opt, phase, steps, data, options, bar, verbose):
     theta, xdot, weights, inputs, noise_var, free_rows = data
     # on a CPU the loss and its gradient written out in numpy (numpy_step.py): the same
     # model and loss without the framework's overhead per operation, on one thread
-    if supported(model, theta):
+    if supported(model, theta, xdot, weights, inputs):
         by_hand = NumpyStep(model, theta, xdot, weights, inputs, noise_var, options.threshold,
                             free_rows)
         with single_thread():
@@ -324,7 +324,8 @@ def _steps(model, opt, phase, steps, data, options, bar, verbose, by_hand):
             # capped at the normalised weight so rich variation is not flattened.
             l1_weight, rough_weight = 0.0, options.refit_smoothness
         if by_hand is not None:
-            terms, loss = by_hand(l1_weight, rough_weight, options.kl_weight, phase == 2)
+            terms, loss = by_hand(l1_weight, rough_weight, options.kl_weight,
+                                  rough_scaled=phase == 2)
         else:
             terms = loss_terms(model, theta, xdot, weights, inputs, noise_var,
                                options.threshold, free_rows.to(theta.dtype))

@@ -19,12 +19,13 @@ from .._core import recordings
 from .._core import validation as val
 from .._core.derivatives import AdaptiveSavitzkyGolay, noise_level, window_capped
 from .._core.library import check_library, feature_expressions, fit_library
+from .._core.threads import single_thread
 from .._core.timing import recording, timed
 from .._stage_one.estimator import DynamicSINDy
 from .assemble import from_proposals, from_verdicts
 from .hypotheses import Context, evaluate, propose
 from .judge import judge_all
-from .refine import NOISE_FLOOR, RefineOptions, single_thread
+from .refine import NOISE_FLOOR, RefineOptions
 from .result import HiddenDiscovery
 from .smoother import Structure
 

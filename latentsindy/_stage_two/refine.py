@@ -28,7 +28,6 @@ import scipy.sparse as sps
 import torch
 
 from .._core.derivatives import noise_level
-from .._core.threads import single_thread  # noqa: F401  (stage two's users import it here)
 from .._core.timing import timed
 from .field import ParametricSystem
 from .shooting import BlowUp, Integrator, NormalEquations, make_groups, solve

@@ -11,13 +11,14 @@ from latentsindy._stage_one.training import CoefficientModel, loss_terms
 from latentsindy.generators.timevae import TimeVAE, TimeVAEOptions
 
 
-def _problem(n_traj=1, n_times=700, irregular=False, seed=0):
+def _problem(n_traj=1, n_times=700, irregular=False, seed=0, n_knots=64, kernel_size=5):
     """A random timeVAE (non-zero output) inside a coefficient model, and normalised
     data: two states, four library terms, a pinned constant and a pruned term."""
     gen_ = torch.Generator().manual_seed(seed)
     rand = lambda *s: torch.randn(*s, generator=gen_)  # noqa: E731
     t = np.sort(np.random.default_rng(seed).uniform(0, 10, n_times)) if irregular else None
-    gen = TimeVAE(n_inputs=4, n_outputs=8, options=TimeVAEOptions(n_knots=64))
+    gen = TimeVAE(n_inputs=4, n_outputs=8,
+                  options=TimeVAEOptions(n_knots=n_knots, kernel_size=kernel_size))
     with torch.no_grad():
         for p in gen.parameters():
             p.copy_(0.3 * rand(*p.shape))
@@ -49,14 +50,17 @@ def _autograd(model, data, l1_weight, rough_weight, rough_scaled, opt):
             float(loss.detach()), opt.grad.clone())
 
 
-@pytest.mark.parametrize("n_traj, irregular, fit", [(1, False, True), (2, False, True),
-                                                    (1, True, True), (1, False, False),
-                                                    (1, True, False)])
+@pytest.mark.parametrize("n_traj, irregular, fit, shape", [
+    (1, False, True, {}), (2, False, True, {}), (1, True, True, {}), (1, False, False, {}),
+    (1, True, False, {}),
+    # no upsampling layer, a series shorter than the encoder's points, another kernel
+    (1, False, True, {"n_knots": 32, "kernel_size": 3}),
+    (2, True, True, {"n_knots": 128, "n_times": 90})])
 @pytest.mark.parametrize("phase", [1, 2])
-def test_loss_and_gradient_equal_autograd(n_traj, irregular, fit, phase):
+def test_loss_and_gradient_equal_autograd(n_traj, irregular, fit, shape, phase):
     """Every tensor's gradient; without the data misfit (``fit`` False: zero weights)
     the penalties' own gradients are compared, which the misfit's would swamp."""
-    model, data = _problem(n_traj, irregular=irregular)
+    model, data = _problem(n_traj, irregular=irregular, **shape)
     if not fit:
         data = (data[0], data[1], 0.0 * data[2], *data[3:])
     assert supported(model, data[0])
@@ -65,7 +69,7 @@ def test_loss_and_gradient_equal_autograd(n_traj, irregular, fit, phase):
     terms, loss, grad = _autograd(model, data, l1_weight, rough_weight, phase == 2, opt)
     step = NumpyStep(model, *data)
     torch.manual_seed(3)  # the same latent noise
-    opt.zero_grad()
+    opt.grad.fill_(float("nan"))  # every gradient must be written (none is zeroed)
     ours, our_loss = step(l1_weight, rough_weight, 1.0, phase == 2)
     assert our_loss == pytest.approx(loss, rel=1e-4)  # float32 sums, rounded differently
     for key, value in terms.items():
@@ -113,5 +117,49 @@ def test_gradient_check_against_finite_differences():
 def test_not_supported_off_the_cpu_float32_timevae():
     model, data = _problem()
     assert not supported(model, data[0].double())
+    assert not supported(model, data[0], data[1].double())
+    model.constants.requires_grad_(False)  # a frozen parameter gets no .grad to write
+    assert not supported(model, data[0])
+    model.constants.requires_grad_(True)
     model.generator.encoder_points = None  # a model file of version 1-2 reads every sample
     assert not supported(model, data[0])
+
+
+def test_a_step_after_a_new_optimiser_is_an_error():
+    model, data = _problem()
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = FlatAdam(params, lr=1e-3)
+    step = NumpyStep(model, *data)
+    opt.release()
+    opt = FlatAdam(params, lr=1e-3)
+    with pytest.raises(RuntimeError, match="new storage"):
+        step(0.1, 0.3, 1.0, False)
+    opt.release()
+
+
+def test_training_by_hand_follows_autograd(monkeypatch):
+    """A short two-phase training (pruning, the decisions between the phases) by hand
+    and with autograd (the path a GPU takes) ends at the same support and constants."""
+    import latentsindy._stage_one.training as training
+
+    def trained(by_hand):
+        model, data = _problem(n_times=400, seed=2)
+        if not by_hand:
+            monkeypatch.setattr(training, "supported", lambda *args: False)
+        theta, xdot, weights, inputs, _, threshold, free = data
+        options = training.TrainingOptions(support_steps=60, refit_steps=40, prune_every=5)
+        torch.manual_seed(0)
+        # a small noise variance: the refit's smoothing weight is then below its cap
+        history = training.train(model, theta, xdot, weights, inputs, 1e-4, free,
+                                 options, False)
+        monkeypatch.undo()
+        return model, history
+
+    ours, our_history = trained(True)
+    ref, history = trained(False)
+    assert torch.equal(ours.support, ref.support)
+    assert torch.allclose(ours.constants, ref.constants, rtol=1e-4, atol=1e-5)
+    assert 0.01 < history[-1]["rough_bayes"] < 1.0
+    for ours_k, ref_k in zip(our_history, history, strict=True):  # every step's loss
+        assert ours_k["loss"] == pytest.approx(ref_k["loss"], rel=1e-3)
+    assert list(our_history[-1]) == list(history[-1])  # the same record, key for key

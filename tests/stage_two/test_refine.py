@@ -152,7 +152,7 @@ def test_single_thread_covers_torch_and_the_blas():
     are restored afterwards."""
     from threadpoolctl import threadpool_info
 
-    from latentsindy._stage_two.refine import single_thread
+    from latentsindy._core.threads import single_thread
 
     def blas():
         return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
