@@ -199,11 +199,13 @@ class NumpyStep:
         self.constants = model.constants.detach().numpy()
         self.constants_grad = model.constants.grad.numpy()
         self._grad_owner = model.constants.grad
+        from .training import TV_SHARE  # here: training imports this module
+
+        self.tv_share = TV_SHARE
 
     def __call__(self, l1_weight, rough_weight, kl_weight, rough_scaled):
-        """Loss terms (as :func:`.training.loss_terms`, floats) and the total loss
-        ``mse + kl_weight kl + l1_weight l1 + rough_weight [rough_bayes] rough``
-        (``rough_bayes`` only if ``rough_scaled``); the gradients are written."""
+        """Loss terms (as :func:`.training.loss_terms`, floats); the gradient of
+        :func:`.training.total_loss` with these weights is written."""
         if self.model.constants.grad is not self._grad_owner:
             raise RuntimeError("NumpyStep: the parameters' gradients have new storage (a new "
                                "optimiser); make a new NumpyStep for it.")
@@ -224,10 +226,7 @@ class NumpyStep:
         grad_logvar = grad_z * eps * 0.5 * std + c * 0.5 * (np.exp(logvar) - 1.0)
         grad_logvar *= (raw_logvar >= _LOGVAR_RANGE[0]) & (raw_logvar <= _LOGVAR_RANGE[1])
         self._encode_backward(np.concatenate([grad_mu, grad_logvar]), pooled_parts)
-        reg = (l1_weight * terms["l1"] + rough_weight * terms["rough"]
-               * (terms["rough_bayes"] if rough_scaled else 1.0))
-        loss = terms["mse"] + kl_weight * terms["kl"] + reg
-        return terms, loss
+        return terms
 
     # -- encoder ---------------------------------------------------------------------
     def _encode(self):
@@ -339,8 +338,6 @@ class NumpyStep:
 
     def _roughness(self, xi):
         """:func:`.training.roughness` per term, and its gradient by ``xi``."""
-        from .training import TV_SHARE
-
         n_times = xi.shape[0]
         if n_times < 3:
             return np.zeros(xi.shape[1:], np.float32), np.zeros_like(xi)
@@ -366,8 +363,8 @@ class NumpyStep:
             g_first = g_slope / h
             grad[1:] += g_first
             grad[:-1] -= g_first
-        g1 = np.sign(first) * np.float32(TV_SHARE / (n_times - 1))
+        g1 = np.sign(first) * np.float32(self.tv_share / (n_times - 1))
         grad[1:] += g1
         grad[:-1] -= g1
-        value = 0.5 * _time_mean(second) + TV_SHARE * _time_mean(np.abs(first))
+        value = 0.5 * _time_mean(second) + self.tv_share * _time_mean(np.abs(first))
         return value, grad

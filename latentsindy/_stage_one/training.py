@@ -229,6 +229,17 @@ def loss_terms(model, theta, xdot, weights, inputs, noise_var, threshold, free_r
             "rough_bayes": min(1.0, max(0.01, float(bayes)))}
 
 
+def total_loss(terms, l1_weight, rough_weight, kl_weight, rough_scaled):
+    """The training loss from :func:`loss_terms` (tensors or floats): ``mse + kl_weight
+    kl + l1_weight l1 + rough_weight [rough_bayes] rough``, the roughness scaled by
+    ``rough_bayes`` only if ``rough_scaled`` (the refit); the refit has no l1 term."""
+    scale = terms["rough_bayes"] if rough_scaled else 1.0
+    reg = rough_weight * scale * terms["rough"]
+    if not rough_scaled:
+        reg = l1_weight * terms["l1"] + reg
+    return terms["mse"] + kl_weight * terms["kl"] + reg
+
+
 def roughness(track: torch.Tensor, spacing: torch.Tensor | None = None) -> torch.Tensor:
     """Smoothness penalty of both generators, per trailing entry: half the mean absolute
     second difference along time (dim 1) plus ``TV_SHARE`` of the mean absolute first
@@ -324,16 +335,13 @@ def _steps(model, opt, phase, steps, data, options, bar, verbose, by_hand):
             # capped at the normalised weight so rich variation is not flattened.
             l1_weight, rough_weight = 0.0, options.refit_smoothness
         if by_hand is not None:
-            terms, loss = by_hand(l1_weight, rough_weight, options.kl_weight,
-                                  rough_scaled=phase == 2)
+            terms = by_hand(l1_weight, rough_weight, options.kl_weight,
+                            rough_scaled=phase == 2)
+            loss = total_loss(terms, l1_weight, rough_weight, options.kl_weight, phase == 2)
         else:
             terms = loss_terms(model, theta, xdot, weights, inputs, noise_var,
                                options.threshold, free_rows.to(theta.dtype))
-            scale = terms["rough_bayes"] if phase == 2 else 1.0
-            reg = rough_weight * scale * terms["rough"]
-            if phase == 1:
-                reg = l1_weight * terms["l1"] + reg
-            loss = terms["mse"] + options.kl_weight * terms["kl"] + reg
+            loss = total_loss(terms, l1_weight, rough_weight, options.kl_weight, phase == 2)
             opt.zero_grad()
             loss.backward()
         opt.step(max_norm=options.grad_clip)

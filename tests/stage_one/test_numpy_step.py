@@ -7,7 +7,7 @@ import torch
 from latentsindy._stage_one.estimator import sample_positions
 from latentsindy._stage_one.flat_adam import FlatAdam
 from latentsindy._stage_one.numpy_step import NumpyStep, supported
-from latentsindy._stage_one.training import CoefficientModel, loss_terms
+from latentsindy._stage_one.training import CoefficientModel, loss_terms, total_loss
 from latentsindy.generators.timevae import TimeVAE, TimeVAEOptions
 
 
@@ -41,9 +41,7 @@ def _autograd(model, data, l1_weight, rough_weight, rough_scaled, opt):
     torch.manual_seed(3)
     terms = loss_terms(model, theta, xdot, weights, inputs, noise_var, threshold,
                        free.to(theta.dtype))
-    scale = terms["rough_bayes"] if rough_scaled else 1.0
-    loss = (terms["mse"] + terms["kl"] + l1_weight * terms["l1"]
-            + rough_weight * scale * terms["rough"])
+    loss = total_loss(terms, l1_weight, rough_weight, 1.0, rough_scaled)
     opt.zero_grad()
     loss.backward()
     return ({k: float(v.detach()) if torch.is_tensor(v) else v for k, v in terms.items()},
@@ -70,7 +68,8 @@ def test_loss_and_gradient_equal_autograd(n_traj, irregular, fit, shape, phase):
     step = NumpyStep(model, *data)
     torch.manual_seed(3)  # the same latent noise
     opt.grad.fill_(float("nan"))  # every gradient must be written (none is zeroed)
-    ours, our_loss = step(l1_weight, rough_weight, 1.0, phase == 2)
+    ours = step(l1_weight, rough_weight, 1.0, phase == 2)
+    our_loss = total_loss(ours, l1_weight, rough_weight, 1.0, phase == 2)
     assert our_loss == pytest.approx(loss, rel=1e-4)  # float32 sums, rounded differently
     for key, value in terms.items():
         assert ours[key] == pytest.approx(value, rel=1e-4, abs=1e-9), key
@@ -98,7 +97,7 @@ def test_gradient_check_against_finite_differences():
     opt = FlatAdam(params, lr=1e-3)
     step = NumpyStep(model, *data)
     torch.manual_seed(3)
-    _, base = step(0.1, 0.3, 1.0, False)
+    step(0.1, 0.3, 1.0, False)
     direction = torch.randn(opt.flat.shape, generator=torch.Generator().manual_seed(1))
     slope = float(opt.grad @ direction)
     h = 1e-3
@@ -107,7 +106,7 @@ def test_gradient_check_against_finite_differences():
         with torch.no_grad():
             opt.flat.add_(sign * h * direction)
         torch.manual_seed(3)
-        values.append(step(0.1, 0.3, 1.0, False)[1])
+        values.append(total_loss(step(0.1, 0.3, 1.0, False), 0.1, 0.3, 1.0, False))
         with torch.no_grad():
             opt.flat.sub_(sign * h * direction)
     assert (values[0] - values[1]) / (2 * h) == pytest.approx(slope, rel=2e-2)
