@@ -24,13 +24,12 @@ import copy
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sps
 import torch
 
 from .._core.derivatives import noise_level
 from .._core.timing import timed
 from .field import ParametricSystem
-from .shooting import BlowUp, Integrator, NormalEquations, make_groups, solve
+from .shooting import BlowUp, Integrator, NormalEquations, make_groups, prepared, solve
 
 _GAP = 1e-2  # continuity gaps are held below this fraction of the noise level
 # Measurement noise is taken as at least this fraction of each state's std: on exact
@@ -376,20 +375,21 @@ def _levenberg_marquardt(problem, system, values, starts, weights, rho, max_iter
     eq = problem.equations(system.with_free(values), starts, weights, rho)
     mu, converged, iterations, accepted = 1e-3, False, 0, True
     while iterations < max_iterations:
-        a = eq.matrix()
-        diag = a.diagonal()
-        scale = np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
+        if accepted:  # a new point: its matrix, dense when small, for every damped solve
+            a = prepared(eq.matrix())
+            diag = a.diagonal().copy()
+            scale = np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
         # at a point just reached, the undamped Gauss-Newton model's whole remaining
         # decrease (g' A^-1 g) below the resolution ends the fit without integrating
         # another step (the damped step's decrease would understate it in a long valley
         # of correlated coefficients, and stop there far from the minimum)
         if accepted and resolution > 0:
-            if -(eq.grad @ solve(a + _diag(1e-10 * scale), -eq.grad)) < resolution:
+            if -(eq.grad @ solve(a, -eq.grad, 1e-10 * scale)) < resolution:
                 converged = True
                 break
         if iterations >= max_iterations // 2 and eq.data_cost > give_up:
             break
-        step = solve(a + _diag(mu * scale), -eq.grad)
+        step = solve(a, -eq.grad, mu * scale)
         iterations += 1
         trial_values = values + step[:n_free]
         trial_starts = starts + step[n_free:].reshape(starts.shape)
@@ -414,16 +414,12 @@ def _levenberg_marquardt(problem, system, values, starts, weights, rho, max_iter
     return values, starts, eq, iterations, converged
 
 
-def _diag(values):
-    return sps.diags(values, format="csc")
-
-
 def _covariance(eq, n_free):
     """Covariance of the free coefficients: the coefficient block of (J^T J)^-1 times
     the residual variance per data point (1 when the noise level is right)."""
     if n_free == 0:
         return np.zeros((0, 0))
-    a = eq.matrix()
+    a = prepared(eq.matrix())
     unit = np.zeros((a.shape[0], n_free))
     unit[np.arange(n_free), np.arange(n_free)] = 1.0
     try:

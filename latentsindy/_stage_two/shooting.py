@@ -291,8 +291,25 @@ class NormalEquations:
                               shape=(self.size, self.size))
 
 
-def solve(matrix, rhs):
-    """Solve a symmetric positive (semi)definite sparse system, densely when small."""
-    if matrix.shape[0] <= 600:
-        return np.linalg.solve(matrix.toarray(), rhs)
+DENSE = 600  # normal equations up to this size are solved densely (LAPACK), larger sparsely
+
+
+def prepared(matrix):
+    """``matrix`` (sparse) in the form :func:`solve` works on: a dense array when small
+    (made once, for the several damped solves of one Levenberg-Marquardt point)."""
+    return matrix.toarray() if matrix.shape[0] <= DENSE else matrix
+
+
+def solve(matrix, rhs, damping=None):
+    """Solve ``(matrix + diag(damping)) x = rhs`` for a symmetric positive (semi)definite
+    ``matrix``, sparse or dense (:func:`prepared`), densely when small."""
+    if sps.issparse(matrix) and matrix.shape[0] <= DENSE:
+        matrix = matrix.toarray()
+    if isinstance(matrix, np.ndarray):
+        if damping is not None:
+            matrix = matrix.copy()
+            matrix[np.diag_indices_from(matrix)] += damping
+        return np.linalg.solve(matrix, rhs)
+    if damping is not None:
+        matrix = matrix + sps.diags(damping, format="csc")
     return spsolve(matrix, rhs)

@@ -24,7 +24,7 @@ from latentsindy._stage_two.field import FeatureMap, ParametricSystem
 from latentsindy._stage_two.judge import rank
 from latentsindy._stage_two.refine import JOIN, Fit, Problem, cross_validate
 from latentsindy._stage_two.result import Refinement, Term
-from latentsindy._stage_two.shooting import BlowUp
+from latentsindy._stage_two.shooting import DENSE, BlowUp, prepared, solve
 from latentsindy._stage_two.terms import (
     AMBIGUITY,
     ambiguities,
@@ -161,6 +161,29 @@ def test_single_thread_covers_torch_and_the_blas():
     with single_thread():
         assert torch.get_num_threads() == 1 and set(blas()) == {1}
     assert blas() == before and torch.get_num_threads() == torch_before
+
+
+@pytest.mark.parametrize("size", [4 * (DENSE // 16), 4 * (DENSE // 4 + 10)])
+def test_damped_solves_agree_dense_and_sparse(size):
+    """Levenberg-Marquardt's damped solve on the matrix as prepared once per point (a
+    dense array when small) is the solve of the damped sparse matrix, to rounding."""
+    import scipy.sparse as sps
+
+    rng = np.random.default_rng(0)
+    blocks = [rng.normal(size=(4, 4)) for _ in range(size // 4)]
+    matrix = sps.csc_matrix(sps.block_diag([b @ b.T + np.eye(4) for b in blocks]))
+    rhs, damping = rng.normal(size=size), rng.uniform(0.1, 2.0, size=size)
+    assert isinstance(prepared(matrix), np.ndarray) == (size <= DENSE)
+    expected = np.linalg.solve(matrix.toarray() + np.diag(damping), rhs)
+    for form in (matrix, prepared(matrix)):
+        np.testing.assert_allclose(solve(form, rhs, damping), expected, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(solve(form, rhs), np.linalg.solve(matrix.toarray(), rhs),
+                                   rtol=1e-10, atol=1e-12)
+    dense = prepared(matrix)
+    if isinstance(dense, np.ndarray):
+        before = dense.copy()
+        solve(dense, rhs, damping)
+        np.testing.assert_array_equal(dense, before)  # the prepared matrix is reused
 
 
 def test_stopping_at_the_resolution_stays_within_a_fraction_of_a_standard_error():
