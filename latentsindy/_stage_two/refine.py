@@ -29,7 +29,7 @@ import torch
 from .._core.derivatives import noise_level
 from .._core.timing import timed
 from .field import ParametricSystem
-from .shooting import BlowUp, Integrator, NormalEquations, make_groups, prepared, solve
+from .shooting import BlowUp, Integrator, NormalEquations, as_array, make_groups, solve
 
 _GAP = 1e-2  # continuity gaps are held below this fraction of the noise level
 # Measurement noise is taken as at least this fraction of each state's std: on exact
@@ -304,7 +304,7 @@ class Problem:
         if eq.size > max_size:
             return out
         try:
-            cov = np.linalg.inv(eq.matrix().toarray()) * fit.residual_variance
+            cov = np.linalg.inv(as_array(eq.matrix())) * fit.residual_variance
         except np.linalg.LinAlgError:
             return out
         n, p = fit.starts.shape[1], fit.system.n_free
@@ -375,8 +375,8 @@ def _levenberg_marquardt(problem, system, values, starts, weights, rho, max_iter
     eq = problem.equations(system.with_free(values), starts, weights, rho)
     mu, converged, iterations, accepted = 1e-3, False, 0, True
     while iterations < max_iterations:
-        if accepted:  # a new point: its matrix, dense when small, for every damped solve
-            a = prepared(eq.matrix())
+        if accepted:  # a new point: its matrix serves every damped solve there
+            a = eq.matrix()
             diag = a.diagonal().copy()
             scale = np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
         # at a point just reached, the undamped Gauss-Newton model's whole remaining
@@ -419,7 +419,7 @@ def _covariance(eq, n_free):
     the residual variance per data point (1 when the noise level is right)."""
     if n_free == 0:
         return np.zeros((0, 0))
-    a = prepared(eq.matrix())
+    a = eq.matrix()
     unit = np.zeros((a.shape[0], n_free))
     unit[np.arange(n_free), np.arange(n_free)] = 1.0
     try:

@@ -16,7 +16,7 @@ segments, not with their product.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sps
@@ -24,6 +24,10 @@ import torch
 from scipy.sparse.linalg import spsolve
 
 from .field import FeatureMap, ParametricSystem
+
+# normal equations with up to this many unknowns are assembled and solved densely
+# (LAPACK), larger ones sparsely
+DENSE = 600
 
 
 class BlowUp(Exception):
@@ -43,6 +47,8 @@ class Group:
     mask: torch.Tensor  # (K, M) bool: a real sample
     sample_index: np.ndarray  # (K, M) index of the sample in its trajectory (-1: padding)
     starts: np.ndarray  # (K,) absolute start times
+    # the Hermite interpolation's rows and weights, made at the first integration
+    hermite: dict = field(default_factory=dict, repr=False, compare=False)
 
 
 def make_groups(times, observed, duration, step, device="cpu"):
@@ -176,12 +182,12 @@ class Integrator:
         if self.in_numpy:
             coef = np.asarray(coef, dtype=np.float64)
             y0 = np.asarray(starts, dtype=np.float64)
-            grid, positions = group.grid.numpy(), group.positions.numpy()
+            grid = group.grid.numpy()
         else:
             like = dict(dtype=torch.float64, device=self.device)
             coef = torch.as_tensor(coef, **like)
             y0 = torch.as_tensor(starts, **like)
-            grid, positions = group.grid, group.positions
+            grid = group.grid
         n, k = y0.shape[-1], y0.shape[0]
         if sensitivities:
             if self.in_numpy:
@@ -200,7 +206,7 @@ class Integrator:
             dz = func(z)
             z, dz = z.swapaxes(0, 1), dz.swapaxes(0, 1)  # (K, G, ...)
             # the caller's algebra (normal equations, residuals) is on the CPU, in torch
-            values, ends = _hermite(z, dz, grid, positions), z[:, -1]
+            values, ends = _hermite(z, dz, group), z[:, -1]
         if self.in_numpy:
             values, ends = torch.from_numpy(values), torch.from_numpy(np.ascontiguousarray(ends))
         else:
@@ -238,33 +244,50 @@ def rk4(func, y0, grid):
 _ONE_THIRD = 1 / 3
 
 
-def _hermite(z, dz, grid, positions):
-    """Cubic Hermite interpolation of grid values z (K, G, ...) at positions (K, M)."""
+def _hermite(z, dz, group: Group):
+    """Cubic Hermite interpolation of grid values z (K, G, ...) (numpy arrays or
+    tensors) at the group's sample positions: (K, M, ...)."""
+    key = "numpy" if isinstance(z, np.ndarray) else z.device
+    if key not in group.hermite:
+        group.hermite[key] = _hermite_table(group, key)
+    rows, w00, w10, w01, w11 = group.hermite[key]
+    k, g = z.shape[:2]
+    rest = z.shape[2:]
+    z, dz = z.reshape(k * g, *rest), dz.reshape(k * g, *rest)
+    shape = (-1, *([1] * len(rest)))
+    w00, w10, w01, w11 = (w.reshape(shape) for w in (w00, w10, w01, w11))
+    values = (w00 * z[rows] + w10 * dz[rows] + w01 * z[rows + 1] + w11 * dz[rows + 1])
+    return values.reshape(k, -1, *rest)
+
+
+def _hermite_table(group: Group, on):
+    """Rows of the flattened grid values (segment, grid index) left of each sample, and
+    the Hermite weights of the values and slopes at both ends (the slopes' times the
+    step), for the group's positions: made once per group (and device)."""
+    grid = group.grid.cpu().numpy()
+    positions = group.positions.cpu().numpy()
     h = grid[1] - grid[0]
-    last = len(grid) - 2
-    if isinstance(z, np.ndarray):
-        j = np.clip(np.floor(positions / h).astype(np.int64), 0, last)
-        segment = np.arange(len(z))[:, None]
-    else:
-        j = torch.clamp((positions / h).floor().long(), 0, last)
-        segment = torch.arange(len(z), device=z.device)[:, None]
+    j = np.clip(np.floor(positions / h).astype(np.int64), 0, len(grid) - 2)
     s = (positions - grid[j]) / h
-    s = s.reshape(*s.shape, *([1] * (len(z.shape) - 2)))
-    z0, z1, d0, d1 = z[segment, j], z[segment, j + 1], dz[segment, j], dz[segment, j + 1]
     s2, s3 = s * s, s * s * s
-    return ((2 * s3 - 3 * s2 + 1) * z0 + (s3 - 2 * s2 + s) * h * d0
-            + (-2 * s3 + 3 * s2) * z1 + (s3 - s2) * h * d1)
+    rows = (np.arange(len(positions))[:, None] * len(grid) + j).ravel()
+    weights = [(2 * s3 - 3 * s2 + 1), (s3 - 2 * s2 + s) * h, (-2 * s3 + 3 * s2), (s3 - s2) * h]
+    table = [rows] + [w.ravel() for w in weights]
+    if on == "numpy":
+        return table
+    return [torch.as_tensor(a, device=on) for a in table]
 
 
 class NormalEquations:
-    """Block assembly of J^T J and J^T r for (free coefficients, segment starts)."""
+    """Block assembly of J^T J and J^T r for (free coefficients, segment starts): a dense
+    array when the system has at most ``DENSE`` unknowns, else a sparse matrix."""
 
     def __init__(self, n_free, n_segments, n_states):
         self.p, self.k, self.n = n_free, n_segments, n_states
         self.size = n_free + n_segments * n_states
-        self.rows, self.cols, self.vals = [], [], []
-        self.grad = np.zeros(self.size)
-        self.cost = 0.0
+        self.dense = self.size <= DENSE
+        self.rows, self.cols, self.vals, self.grads = [], [], [], []
+        self.cost, self._grad = 0.0, None
 
     def index(self, segment):
         return self.p + segment * self.n + np.arange(self.n)
@@ -273,36 +296,52 @@ class NormalEquations:
         """Rows ``jac`` (B, R, P + n * len(segments)) for the residuals ``resid`` (B, R)
         of the blocks whose starts are ``segments`` (B, len(segments))."""
         jac, resid = np.asarray(jac), np.asarray(resid)
-        gram = np.einsum("brc,brd->bcd", jac, jac)
-        grad = np.einsum("brc,br->bc", jac, resid)
+        gram = np.matmul(jac.transpose(0, 2, 1), jac)  # the BLAS: 7x an einsum's speed
+        self.grads.append(np.einsum("brc,br->bc", jac, resid).ravel())
+        self._grad = None
         self.cost += float(np.sum(resid**2))
         idx = np.concatenate([np.broadcast_to(np.arange(self.p), (len(segments), self.p)),
                               self.p + (segments[..., None] * self.n
                                         + np.arange(self.n)).reshape(len(segments), -1)],
                              axis=1)
-        np.add.at(self.grad, idx, grad)
-        self.rows.append(np.repeat(idx[:, :, None], idx.shape[1], axis=2).ravel())
-        self.cols.append(np.repeat(idx[:, None, :], idx.shape[1], axis=1).ravel())
+        self.rows.append(idx.ravel())  # the gradient's entries; with cols, the matrix's
+        if self.dense:
+            self.cols.append((idx[:, :, None] * self.size + idx[:, None, :]).ravel())
+        else:
+            self.cols.append(np.stack([np.repeat(idx[:, :, None], idx.shape[1], axis=2).ravel(),
+                                       np.repeat(idx[:, None, :], idx.shape[1], axis=1).ravel()]))
         self.vals.append(gram.ravel())
 
+    @property
+    def grad(self):
+        """J^T r, summed over the blocks in the order they were added."""
+        if self._grad is None:
+            self._grad = np.zeros(self.size) if not self.rows else np.bincount(
+                np.concatenate(self.rows), np.concatenate(self.grads), minlength=self.size)
+        return self._grad
+
     def matrix(self):
-        return sps.csc_matrix((np.concatenate(self.vals), (np.concatenate(self.rows),
-                                                           np.concatenate(self.cols))),
+        """J^T J: a dense array (at most ``DENSE`` unknowns) or a sparse csc matrix."""
+        if not self.vals:
+            return np.zeros((self.size, self.size)) if self.dense else sps.csc_matrix(
+                (self.size, self.size))
+        if self.dense:  # entries summed in the order they were added
+            return np.bincount(np.concatenate(self.cols), np.concatenate(self.vals),
+                               minlength=self.size * self.size).reshape(self.size, self.size)
+        rows, cols = np.concatenate(self.cols, axis=1)
+        return sps.csc_matrix((np.concatenate(self.vals), (rows, cols)),
                               shape=(self.size, self.size))
 
 
-DENSE = 600  # normal equations up to this size are solved densely (LAPACK), larger sparsely
-
-
-def prepared(matrix):
-    """``matrix`` (sparse) in the form :func:`solve` works on: a dense array when small
-    (made once, for the several damped solves of one Levenberg-Marquardt point)."""
-    return matrix.toarray() if matrix.shape[0] <= DENSE else matrix
+def as_array(matrix):
+    """A matrix from :meth:`NormalEquations.matrix` as a dense array."""
+    return matrix.toarray() if sps.issparse(matrix) else matrix
 
 
 def solve(matrix, rhs, damping=None):
     """Solve ``(matrix + diag(damping)) x = rhs`` for a symmetric positive (semi)definite
-    ``matrix``, sparse or dense (:func:`prepared`), densely when small."""
+    ``matrix``, a dense array or sparse (solved densely when small); ``matrix`` itself
+    is left as it was, so one point's matrix serves all of its damped solves."""
     if sps.issparse(matrix) and matrix.shape[0] <= DENSE:
         matrix = matrix.toarray()
     if isinstance(matrix, np.ndarray):

@@ -228,7 +228,7 @@ class _Quadratic:
         eq = problem.equations(aug, fit.starts, np.ones(problem.n_segments), fit.rho)
         self.cells = list(zip(*np.nonzero(aug.free), strict=True))
         p = len(self.cells)
-        a = eq.matrix().tocsc()
+        a = sps.csc_matrix(eq.matrix())
         g = eq.grad
         a_pp = a[:p, :p].toarray()
         a_ps = a[:p, p:].toarray()

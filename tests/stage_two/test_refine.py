@@ -24,7 +24,7 @@ from latentsindy._stage_two.field import FeatureMap, ParametricSystem
 from latentsindy._stage_two.judge import rank
 from latentsindy._stage_two.refine import JOIN, Fit, Problem, cross_validate
 from latentsindy._stage_two.result import Refinement, Term
-from latentsindy._stage_two.shooting import DENSE, BlowUp, prepared, solve
+from latentsindy._stage_two.shooting import DENSE, BlowUp, NormalEquations, as_array, solve
 from latentsindy._stage_two.terms import (
     AMBIGUITY,
     ambiguities,
@@ -165,25 +165,52 @@ def test_single_thread_covers_torch_and_the_blas():
 
 @pytest.mark.parametrize("size", [4 * (DENSE // 16), 4 * (DENSE // 4 + 10)])
 def test_damped_solves_agree_dense_and_sparse(size):
-    """Levenberg-Marquardt's damped solve on the matrix as prepared once per point (a
-    dense array when small) is the solve of the damped sparse matrix, to rounding."""
+    """Levenberg-Marquardt's damped solve, on a dense array or a sparse matrix, is the
+    solve of the damped matrix, and leaves the matrix as it was (one point's matrix
+    serves all of its damped solves)."""
     import scipy.sparse as sps
 
     rng = np.random.default_rng(0)
     blocks = [rng.normal(size=(4, 4)) for _ in range(size // 4)]
     matrix = sps.csc_matrix(sps.block_diag([b @ b.T + np.eye(4) for b in blocks]))
     rhs, damping = rng.normal(size=size), rng.uniform(0.1, 2.0, size=size)
-    assert isinstance(prepared(matrix), np.ndarray) == (size <= DENSE)
     expected = np.linalg.solve(matrix.toarray() + np.diag(damping), rhs)
-    for form in (matrix, prepared(matrix)):
+    for form in (matrix, matrix.toarray()):
+        before = as_array(form).copy()
         np.testing.assert_allclose(solve(form, rhs, damping), expected, rtol=1e-10, atol=1e-12)
-        np.testing.assert_allclose(solve(form, rhs), np.linalg.solve(matrix.toarray(), rhs),
+        np.testing.assert_allclose(solve(form, rhs), np.linalg.solve(before, rhs),
                                    rtol=1e-10, atol=1e-12)
-    dense = prepared(matrix)
-    if isinstance(dense, np.ndarray):
-        before = dense.copy()
-        solve(dense, rhs, damping)
-        np.testing.assert_array_equal(dense, before)  # the prepared matrix is reused
+        np.testing.assert_array_equal(as_array(form), before)
+
+
+def test_normal_equations_dense_and_sparse_assemble_the_same_system(monkeypatch):
+    """The arrow-structured J^T J and J^T r, assembled densely (small systems) and
+    sparsely (large ones), equal the products of the whole Jacobian written out."""
+    from latentsindy._stage_two import shooting
+
+    rng = np.random.default_rng(1)
+    p, k, n = 3, 5, 2
+    data = [(rng.normal(size=(k, 7, p + n)), rng.normal(size=(k, 7)), np.arange(k)[:, None]),
+            (rng.normal(size=(k - 1, n, p + 2 * n)), rng.normal(size=(k - 1, n)),
+             np.stack([np.arange(k - 1), np.arange(1, k)], axis=1))]
+    full, resid = [], []  # the whole Jacobian, row by row
+    for jac, r, segs in data:
+        for b in range(len(jac)):
+            cols = np.concatenate([np.arange(p)] + [p + s * n + np.arange(n) for s in segs[b]])
+            rows = np.zeros((jac.shape[1], p + k * n))
+            rows[:, cols] = jac[b]
+            full.append(rows)
+            resid.append(r[b])
+    full, resid = np.vstack(full), np.concatenate(resid)
+    for dense in (True, False):
+        monkeypatch.setattr(shooting, "DENSE", 10**6 if dense else 0)
+        eq = NormalEquations(p, k, n)
+        for jac, r, segs in data:
+            eq.add(jac, r, segs)
+        assert isinstance(eq.matrix(), np.ndarray) == dense
+        np.testing.assert_allclose(as_array(eq.matrix()), full.T @ full, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(eq.grad, full.T @ resid, rtol=1e-12, atol=1e-12)
+        assert eq.cost == pytest.approx(float(resid @ resid), rel=1e-12)
 
 
 def test_stopping_at_the_resolution_stays_within_a_fraction_of_a_standard_error():
