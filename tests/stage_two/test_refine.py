@@ -169,10 +169,11 @@ def test_damped_solves_agree_dense_and_sparse(size):
     solve of the damped matrix, and leaves the matrix as it was (one point's matrix
     serves all of its damped solves)."""
     import scipy.sparse as sps
+    from scipy.linalg import block_diag
 
     rng = np.random.default_rng(0)
     blocks = [rng.normal(size=(4, 4)) for _ in range(size // 4)]
-    matrix = sps.csc_matrix(sps.block_diag([b @ b.T + np.eye(4) for b in blocks]))
+    matrix = sps.csc_matrix(block_diag(*[b @ b.T + np.eye(4) for b in blocks]))
     rhs, damping = rng.normal(size=size), rng.uniform(0.1, 2.0, size=size)
     expected = np.linalg.solve(matrix.toarray() + np.diag(damping), rhs)
     for form in (matrix, matrix.toarray()):
