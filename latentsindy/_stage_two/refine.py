@@ -181,17 +181,18 @@ class Problem:
         root = float(np.sqrt(rho))
         for g in self.groups:
             segs = np.arange(g.first, g.first + g.n_segments)
-            out = integrator.run(coef, starts[segs], g, sensitivities=jacobian)
+            out = integrator.run(coef, starts[segs], g, sensitivities=jacobian,
+                                 components=self.n_obs)
             (vals, sens), (ends, sens_end) = out if jacobian else ((out[0], None),
                                                                     (out[1], None))
             w = torch.as_tensor(weights[segs])[:, None, None] * g.mask[..., None]
-            resid = (vals[..., :self.n_obs] - g.observed) / sig * w
+            resid = (vals - g.observed) / sig * w
             data_cost += float((resid**2).sum())
             gap = (torch.as_tensor(starts[segs[1:]]) - ends[:-1]) / scale * root
             if not jacobian:
                 eq.cost += float((resid**2).sum() + (gap**2).sum())
                 continue
-            s = sens[..., :self.n_obs, :] / sig[:, None] * w[..., None]
+            s = sens / sig[:, None] * w[..., None]
             jac = torch.cat([s[..., n:], s[..., :n]], dim=-1)  # columns: (coef, start)
             eq.add(jac.reshape(len(segs), -1, n_free + n).numpy(),
                    resid.reshape(len(segs), -1).numpy(), segs[:, None])
@@ -239,7 +240,7 @@ class Problem:
                 continue
             segs = np.arange(g.first, g.first + g.n_segments)
             _, ends = self.integrator_for(system).run(system.coef, starts[segs], g,
-                                                      sensitivities=False)
+                                                      sensitivities=False, components=0)
             gap = (torch.as_tensor(starts[segs[1:]]) - ends[:-1]) / torch.as_tensor(self.scale)
             worst = max(worst, float(gap.abs().max()))
         return worst
@@ -329,8 +330,9 @@ class Problem:
         for g in self.groups:
             segs = np.arange(g.first, g.first + g.n_segments)
             vals, _ = self.integrator_for(fit.system).run(fit.system.coef, fit.starts[segs], g,
-                                                          sensitivities=False)
-            resid = ((vals[..., :self.n_obs] - g.observed) / sig) ** 2 * g.mask[..., None]
+                                                          sensitivities=False,
+                                                          components=self.n_obs)
+            resid = ((vals - g.observed) / sig) ** 2 * g.mask[..., None]
             per = resid.sum(dim=(1, 2)) / (g.mask.sum(dim=1) * self.n_obs).clamp_min(1)
             errors += [float(per[k]) for k, s in enumerate(segs) if which[s]]
         return np.array(errors)

@@ -103,7 +103,10 @@ class Integrator:
         self.in_numpy = self.device.type == "cpu" and self.features.exponents is not None
 
     def _check(self, y):
-        top = float(y.abs().max()) if torch.is_tensor(y) else float(np.abs(y).max())
+        if torch.is_tensor(y):  # one reduction, one wait for the device
+            top = float(y.abs().max())
+        else:  # max |y| as the larger of max y and -min y: no temporary array
+            top = max(float(y.max()), -float(y.min()))
         if not top <= self.bound:  # NaN fails the comparison too
             raise BlowUp()
 
@@ -172,12 +175,14 @@ class Integrator:
         return func
 
     @torch.no_grad()
-    def run(self, coef, starts, group: Group, sensitivities=True):
+    def run(self, coef, starts, group: Group, sensitivities=True, components=None):
         """States (and sensitivities) at the group's sample times and at segment ends,
         as tensors on the CPU.
 
         Returns ``(values, ends)``; with sensitivities each is a pair (state, S) where
-        S is d state / d(start, free coefficients), shape (..., n, n + n_free).
+        S is d state / d(start, free coefficients), shape (..., n, n + n_free). With
+        ``components``, only the first ``components`` states (the observed ones, say)
+        are interpolated to the sample times; the ends hold every state.
         """
         if self.in_numpy:
             coef = np.asarray(coef, dtype=np.float64)
@@ -205,8 +210,11 @@ class Integrator:
             z = rk4(func, z0, grid)  # (G, K, ...) on the grid
             dz = func(z)
             z, dz = z.swapaxes(0, 1), dz.swapaxes(0, 1)  # (K, G, ...)
+            ends = z[:, -1]
             # the caller's algebra (normal equations, residuals) is on the CPU, in torch
-            values, ends = _hermite(z, dz, group), z[:, -1]
+            if components is not None:  # the same arithmetic on fewer states
+                z, dz = z[:, :, :components], dz[:, :, :components]
+            values = _hermite(z, dz, group)
         if self.in_numpy:
             values, ends = torch.from_numpy(values), torch.from_numpy(np.ascontiguousarray(ends))
         else:
@@ -257,7 +265,7 @@ def _hermite(z, dz, group: Group):
     shape = (-1, *([1] * len(rest)))
     w00, w10, w01, w11 = (w.reshape(shape) for w in (w00, w10, w01, w11))
     values = (w00 * z[rows] + w10 * dz[rows] + w01 * z[rows + 1] + w11 * dz[rows + 1])
-    return values.reshape(k, -1, *rest)
+    return values.reshape(k, group.positions.shape[1], *rest)
 
 
 def _hermite_table(group: Group, on):
