@@ -10,8 +10,9 @@ between a segment's end and the next segment's start gives the continuity residu
 
 The least-squares normal equations have an arrow structure (coefficients couple
 everything, each start couples only its own segment and its neighbours), so they are
-assembled block by block and solved sparsely: memory grows with the number of
-segments, not with their product.
+assembled block by block; up to ``DENSE`` unknowns (a few hundred: every benchmark
+family) they are held and solved densely, which costs least there, and beyond it
+sparsely: memory grows with the number of segments, not with their product.
 """
 
 from __future__ import annotations
