@@ -313,8 +313,20 @@ def _update_loadings(st, data: _Data, hidden):
 
 def _sparse_solve(matrix, rhs):
     """Solve with Jacobi scaling (columns of very different sizes, e.g. x and x^3) and a
-    tiny ridge."""
+    tiny ridge.
+
+    The scaling ``D M D`` is applied to the stored entries and the ridge added on the
+    diagonal in place: the products and sums of ``diags(d) @ M @ diags(d) + 1e-10 I``
+    (the same entries, none exactly zero) without building three sparse matrices."""
     d = 1.0 / np.sqrt(np.maximum(matrix.diagonal(), 1e-300))
-    scaled = sps.diags(d) @ matrix @ sps.diags(d)
-    scaled = scaled + 1e-10 * sps.identity(matrix.shape[0], format="csc")
-    return d * spsolve(scaled.tocsc(), d * rhs)
+    scaled = sps.csc_matrix(matrix, copy=True)
+    scaled.sum_duplicates()
+    cols = np.repeat(np.arange(scaled.shape[1]), np.diff(scaled.indptr))
+    scaled.data = (d[scaled.indices] * scaled.data) * d[cols]
+    on_diagonal = scaled.indices == cols
+    if np.count_nonzero(on_diagonal) == scaled.shape[0]:  # every diagonal entry stored
+        scaled.data[on_diagonal] += 1e-10
+    else:
+        scaled = scaled + 1e-10 * sps.identity(scaled.shape[0], format="csc")
+    scaled.eliminate_zeros()
+    return d * spsolve(scaled, d * rhs)

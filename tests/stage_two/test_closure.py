@@ -12,7 +12,13 @@ import sympy as sp
 from latentsindy import systems
 from latentsindy._stage_two.closure import ClosureFit, fit_closure, fit_rate_closure, path
 from latentsindy._stage_two.hypotheses import _carrier_pairs, fuller_closure, gauge_free_support
-from latentsindy._stage_two.smoother import Structure, fit_hidden, prune_constants, single_term
+from latentsindy._stage_two.smoother import (
+    Structure,
+    _sparse_solve,
+    fit_hidden,
+    prune_constants,
+    single_term,
+)
 
 
 def test_closure_integral_refit_is_exact_on_clean_data():
@@ -85,6 +91,34 @@ def test_rate_closure_recovers_a_second_order_law():
 
 def _sigma(x):
     return np.full(x.shape[1], 1e-3) * x.std(axis=0)
+
+
+@pytest.mark.parametrize("missing_diagonal", [False, True])
+def test_the_smoothers_scaled_solve_is_the_products_formulation(missing_diagonal):
+    """The smoother's solve scales the stored entries in place: the same numbers, bit
+    for bit, as ``diags(d) @ M @ diags(d) + 1e-10 I`` built as sparse products (with a
+    column of zeros, whose diagonal entry is not stored, too), and the solution of the
+    ridged system."""
+    import scipy.sparse as sps
+    from scipy.sparse.linalg import spsolve
+
+    rng = np.random.default_rng(0)
+    n = 60
+    a = sps.random(3 * n, n, density=0.1, random_state=1, format="csc")
+    a = a @ sps.diags(rng.uniform(0.1, 100.0, n))  # columns of very different sizes
+    if missing_diagonal:
+        a = a @ sps.diags(np.r_[np.ones(n - 1), 0.0])
+    matrix = (a.T @ a).tocsc()
+    matrix.eliminate_zeros()
+    rhs = rng.normal(size=n)
+    if missing_diagonal:
+        rhs[-1] = 0.0  # the empty column's equation: 1e-10 x = 0
+    d = 1.0 / np.sqrt(np.maximum(matrix.diagonal(), 1e-300))
+    products = sps.diags(d) @ matrix @ sps.diags(d) + 1e-10 * sps.identity(n, format="csc")
+    expected = d * spsolve(products.tocsc(), d * rhs)
+    np.testing.assert_array_equal(_sparse_solve(matrix, rhs), expected)
+    dense = products.toarray()
+    np.testing.assert_allclose(dense @ (expected / d), d * rhs, rtol=1e-8, atol=1e-8)
 
 
 def test_smoother_recovers_a_varying_coefficient():
