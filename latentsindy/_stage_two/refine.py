@@ -379,7 +379,7 @@ def _levenberg_marquardt(problem, system, values, starts, weights, rho, max_iter
     while iterations < max_iterations:
         if accepted:  # a new point: its matrix serves every damped solve there
             a = eq.matrix()
-            diag = a.diagonal().copy()
+            diag = a.diagonal()
             scale = np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
         # at a point just reached, the undamped Gauss-Newton model's whole remaining
         # decrease (g' A^-1 g) below the resolution ends the fit without integrating

@@ -106,7 +106,9 @@ class Integrator:
     def _check(self, y):
         if torch.is_tensor(y):  # one reduction, one wait for the device
             top = float(y.abs().max())
-        else:  # max |y| as the larger of max y and -min y: no temporary array
+        else:  # max |y| as the larger of max y and -min y: no temporary array (numpy's
+            # max and min both return NaN when any entry is NaN, so the test below sees
+            # it: Python's max of the two alone would not)
             top = max(float(y.max()), -float(y.min()))
         if not top <= self.bound:  # NaN fails the comparison too
             raise BlowUp()
@@ -295,7 +297,10 @@ class NormalEquations:
         self.p, self.k, self.n = n_free, n_segments, n_states
         self.size = n_free + n_segments * n_states
         self.dense = self.size <= DENSE
-        self.rows, self.cols, self.vals, self.grads = [], [], [], []
+        # per added block: the unknowns its gradient entries go to and those entries;
+        # where its Gram entries go (flat row * size + col indices when dense, a (2, N)
+        # stack of rows and columns when sparse) and those entries
+        self.grad_index, self.grads, self.where, self.vals = [], [], [], []
         self.cost, self._grad = 0.0, None
 
     def index(self, segment):
@@ -313,20 +318,20 @@ class NormalEquations:
                               self.p + (segments[..., None] * self.n
                                         + np.arange(self.n)).reshape(len(segments), -1)],
                              axis=1)
-        self.rows.append(idx.ravel())  # the gradient's entries; with cols, the matrix's
+        self.grad_index.append(idx.ravel())
         if self.dense:
-            self.cols.append((idx[:, :, None] * self.size + idx[:, None, :]).ravel())
+            self.where.append((idx[:, :, None] * self.size + idx[:, None, :]).ravel())
         else:
-            self.cols.append(np.stack([np.repeat(idx[:, :, None], idx.shape[1], axis=2).ravel(),
-                                       np.repeat(idx[:, None, :], idx.shape[1], axis=1).ravel()]))
+            self.where.append(np.stack([np.repeat(idx[:, :, None], idx.shape[1], axis=2).ravel(),
+                                        np.repeat(idx[:, None, :], idx.shape[1], axis=1).ravel()]))
         self.vals.append(gram.ravel())
 
     @property
     def grad(self):
         """J^T r, summed over the blocks in the order they were added."""
         if self._grad is None:
-            self._grad = np.zeros(self.size) if not self.rows else np.bincount(
-                np.concatenate(self.rows), np.concatenate(self.grads), minlength=self.size)
+            self._grad = np.zeros(self.size) if not self.grad_index else np.bincount(
+                np.concatenate(self.grad_index), np.concatenate(self.grads), minlength=self.size)
         return self._grad
 
     def matrix(self):
@@ -335,9 +340,9 @@ class NormalEquations:
             return np.zeros((self.size, self.size)) if self.dense else sps.csc_matrix(
                 (self.size, self.size))
         if self.dense:  # entries summed in the order they were added
-            return np.bincount(np.concatenate(self.cols), np.concatenate(self.vals),
+            return np.bincount(np.concatenate(self.where), np.concatenate(self.vals),
                                minlength=self.size * self.size).reshape(self.size, self.size)
-        rows, cols = np.concatenate(self.cols, axis=1)
+        rows, cols = np.concatenate(self.where, axis=1)
         return sps.csc_matrix((np.concatenate(self.vals), (rows, cols)),
                               shape=(self.size, self.size))
 

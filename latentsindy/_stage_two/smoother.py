@@ -316,8 +316,9 @@ def _sparse_solve(matrix, rhs):
     tiny ridge.
 
     The scaling ``D M D`` is applied to the stored entries and the ridge added on the
-    diagonal in place: the products and sums of ``diags(d) @ M @ diags(d) + 1e-10 I``
-    (the same entries, none exactly zero) without building three sparse matrices."""
+    diagonal in place: for a matrix without duplicate entries (every caller's: products
+    and sums of sparse matrices), the same numbers as ``diags(d) @ M @ diags(d) + 1e-10
+    I`` built as sparse products, bit for bit, without building three sparse matrices."""
     d = 1.0 / np.sqrt(np.maximum(matrix.diagonal(), 1e-300))
     scaled = sps.csc_matrix(matrix, copy=True)
     scaled.sum_duplicates()

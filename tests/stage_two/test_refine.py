@@ -147,6 +147,50 @@ def test_numpy_and_torch_integrate_a_polynomial_field_alike():
             integrator.run(coef * 50.0, starts, group)
 
 
+def test_an_integration_interpolates_only_the_states_asked_for():
+    """``components`` restricts the interpolation to the first states (the observed
+    ones): their values and sensitivities are those of the whole run, digit for digit,
+    the segment ends hold every state, in numpy and in torch; the interpolation table
+    made at the first run of a group serves the next runs unchanged."""
+    from latentsindy._stage_two.shooting import Integrator, make_groups
+
+    feats = (sp.Integer(1), X, Y, Z, X * Y, X * Z)
+    coef = np.array([[0.0, -10.0, 10.0, 0.0, 0.0, 0.0],
+                     [0.0, 28.0, -1.0, 0.0, 0.0, -1.0],
+                     [0.0, 0.0, 0.0, -8.0 / 3.0, 1.0, 0.0]])
+    system = ParametricSystem(("x", "y", "z"), 1, feats, coef, coef != 0)
+    t = np.sort(np.random.default_rng(3).uniform(0.0, 2.0, 150))  # irregular samples
+    group = make_groups([t], [np.zeros((150, 1))], 0.25, 0.01)[0]
+    starts = np.random.default_rng(2).normal([1.0, 1.0, 20.0], 1.0, size=(group.n_segments, 3))
+    numpy_path, torch_path = Integrator(system, 1e6), Integrator(system, 1e6)
+    torch_path.in_numpy = False
+    leaves = torch.utils._pytree.tree_leaves
+    for integrator in (numpy_path, torch_path):
+        for with_sens in (True, False):
+            whole = integrator.run(coef, starts, group, sensitivities=with_sens)
+            for c in (0, 1, 2):
+                part = integrator.run(coef, starts, group, sensitivities=with_sens,
+                                      components=c)
+                (v_whole, e_whole), (v_part, e_part) = ((whole[0], whole[1]),
+                                                        (part[0], part[1]))
+                for u, v in zip(leaves(v_whole), leaves(v_part), strict=True):
+                    assert v.shape[2] == c
+                    torch.testing.assert_close(v, u[:, :, :c], rtol=0, atol=0)
+                for u, v in zip(leaves(e_whole), leaves(e_part), strict=True):
+                    torch.testing.assert_close(v, u, rtol=0, atol=0)
+    assert set(map(str, group.hermite)) == {"numpy", "cpu"}  # one table per path
+    again = numpy_path.run(coef, starts, group, components=1)
+    first = numpy_path.run(coef, starts, group, components=1)
+    for u, v in zip(leaves(again), leaves(first), strict=True):
+        torch.testing.assert_close(u, v, rtol=0, atol=0)
+    values, _ = numpy_path.run(coef, starts, group, sensitivities=False, components=1)
+    exact = solve_ivp(lambda _, y: coef @ np.array([1.0, *y, y[0] * y[1], y[0] * y[2]]),
+                      (0.0, float(group.grid[-1])), starts[0], rtol=1e-10, atol=1e-10,
+                      t_eval=group.positions[0][group.mask[0]].numpy())
+    np.testing.assert_allclose(values[0, group.mask[0], 0].numpy(), exact.y[0], rtol=1e-4,
+                               atol=1e-3)
+
+
 def test_single_thread_covers_torch_and_the_blas():
     """Stage two's small algebra runs on one thread, torch's and the BLAS's, and both
     are restored afterwards."""
@@ -203,11 +247,20 @@ def test_normal_equations_dense_and_sparse_assemble_the_same_system(monkeypatch)
             full.append(rows)
             resid.append(r[b])
     full, resid = np.vstack(full), np.concatenate(resid)
+    jac0, r0, segs0 = data[0]
+    first = np.zeros(p + k * n)  # the gradient of the first blocks alone
+    for b in range(len(jac0)):
+        cols = np.concatenate([np.arange(p), p + segs0[b, 0] * n + np.arange(n)])
+        first[cols] += jac0[b].T @ r0[b]
     for dense in (True, False):
         monkeypatch.setattr(shooting, "DENSE", 10**6 if dense else 0)
+        empty = NormalEquations(p, k, n)
+        assert not np.any(as_array(empty.matrix())) and not np.any(empty.grad)
         eq = NormalEquations(p, k, n)
-        for jac, r, segs in data:
+        for i, (jac, r, segs) in enumerate(data):
             eq.add(jac, r, segs)
+            if i == 0:  # read between additions: the next addition is not missed
+                np.testing.assert_allclose(eq.grad, first, rtol=1e-12, atol=1e-12)
         assert isinstance(eq.matrix(), np.ndarray) == dense
         np.testing.assert_allclose(as_array(eq.matrix()), full.T @ full, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(eq.grad, full.T @ resid, rtol=1e-12, atol=1e-12)
