@@ -303,9 +303,6 @@ class NormalEquations:
         self.grad_index, self.grads, self.where, self.vals = [], [], [], []
         self.cost, self._grad = 0.0, None
 
-    def index(self, segment):
-        return self.p + segment * self.n + np.arange(self.n)
-
     def add(self, jac, resid, segments):
         """Rows ``jac`` (B, R, P + n * len(segments)) for the residuals ``resid`` (B, R)
         of the blocks whose starts are ``segments`` (B, len(segments))."""
