@@ -445,6 +445,92 @@ def _vdp_velocity(rng, noise, seed, sampling=None):
                  "values": {mu: p["mu"]}}, (("y", "1"),), with_observed=True)
 
 
+def _rayleigh(rng, noise, seed, sampling=None):
+    """Rayleigh's oscillator seen through x: xdot = v, vdot = -x + mu (v - v^3) (a limit
+    cycle); v is the coefficient of 1 in dx/dt, and its law needs v^3."""
+    p = {"mu": rng.uniform(0.5, 1.5)}
+    x0 = (rng.uniform(-2, 2), rng.uniform(-1, 1))
+    t = _grid(sampling, 40.0)
+    clean, noisy = _simulated(lambda s: [s[1], -s[0] + p["mu"] * (s[1] - s[1] ** 3)],
+                              x0, t, noise, seed)
+    x, v = _sym("xv")
+    mu = sp.Symbol("mu")
+    return Draw("rayleigh", p, t, noisy[:, :1], clean[:, :1], ("x",), clean[:, 1:],
+                {"rhs": {x: v, v: -x + mu * (v - v**3)}, "hidden": [v],
+                 "values": {mu: p["mu"]}}, (("x", "1"),), with_observed=True)
+
+
+def _chen(rng, noise, seed, sampling=None):
+    """Chen's chaotic system, x and y observed: xdot = a (y - x), ydot = (c - a) x - x z +
+    c y, zdot = x y - b z; z hidden, the coefficient of x in dy/dt (fast: a about 35)."""
+    p = {"a": rng.uniform(34.0, 36.0), "b": rng.uniform(2.8, 3.2), "c": rng.uniform(27.5, 28.5)}
+    x0 = rng.uniform(-5, 5, 3)
+    t = _grid(sampling, 10.0)
+    clean, noisy = _simulated(
+        lambda s: [p["a"] * (s[1] - s[0]), (p["c"] - p["a"]) * s[0] - s[0] * s[2]
+                   + p["c"] * s[1], s[0] * s[1] - p["b"] * s[2]], x0, t, noise, seed)
+    x, y, z = _sym("xyz")
+    a, b, c = sp.symbols("a b c")
+    truth = {x: a * (y - x), y: (c - a) * x - x * z + c * y, z: x * y - b * z}
+    return Draw("chen", p, t, noisy[:, :2], clean[:, :2], ("x", "y"), clean[:, 2:],
+                {"rhs": truth, "hidden": [z], "values": {a: p["a"], b: p["b"], c: p["c"]}},
+                (("y", "x"),), with_observed=True)
+
+
+def _rikitake(rng, noise, seed, sampling=None):
+    """Rikitake's two-disc dynamo, x and y observed: xdot = -m x + z y, ydot = -m y +
+    (z - A) x, zdot = 1 - x y (chaotic reversals); z hidden, the coefficient of y in
+    dx/dt and of x in dy/dt."""
+    p = {"m": rng.uniform(1.8, 2.2), "A": rng.uniform(4.5, 5.5)}
+    x0 = (rng.uniform(-2, 2), rng.uniform(-2, 2), rng.uniform(2, 6))
+    t = _grid(sampling, 100.0)
+    clean, noisy = _simulated(lambda s: [-p["m"] * s[0] + s[2] * s[1],
+                                         -p["m"] * s[1] + (s[2] - p["A"]) * s[0],
+                                         1 - s[0] * s[1]], x0, t, noise, seed)
+    x, y, z = _sym("xyz")
+    m, sa = sp.symbols("m A")
+    truth = {x: -m * x + z * y, y: -m * y + (z - sa) * x, z: 1 - x * y}
+    return Draw("rikitake", p, t, noisy[:, :2], clean[:, :2], ("x", "y"), clean[:, 2:],
+                {"rhs": truth, "hidden": [z], "values": {m: p["m"], sa: p["A"]}},
+                (("x", "y"),), with_observed=True)
+
+
+def _sprott_a(rng, noise, seed, sampling=None):
+    """Sprott's system A (Nose-Hoover), x and y observed: xdot = y, ydot = -x + y z,
+    zdot = a - y^2 (conservative chaos); z hidden, the coefficient of y in dy/dt."""
+    p = {"a": rng.uniform(0.9, 1.1)}
+    x0 = (0.0, rng.uniform(3.0, 5.0), 0.0)
+    t = _grid(sampling, 100.0)
+    clean, noisy = _simulated(lambda s: [s[1], -s[0] + s[1] * s[2], p["a"] - s[1] ** 2],
+                              x0, t, noise, seed)
+    x, y, z = _sym("xyz")
+    a = sp.Symbol("a")
+    truth = {x: y, y: -x + y * z, z: a - y**2}
+    return Draw("sprott_a", p, t, noisy[:, :2], clean[:, :2], ("x", "y"), clean[:, 2:],
+                {"rhs": truth, "hidden": [z], "values": {a: p["a"]}}, (("y", "y"),),
+                with_observed=True)
+
+
+def _hindmarsh_rose(rng, noise, seed, sampling=None):
+    """Hindmarsh-Rose bursting neuron, x and y observed: xdot = y - x^3 + 3 x^2 - z + I,
+    ydot = 1 - 5 x^2 - y, zdot = r (4 (x + 1.6) - z); the slow adaptation current z is
+    hidden, the coefficient of 1 in dx/dt (with I)."""
+    p = {"r": rng.uniform(0.01, 0.02), "I": rng.uniform(2.5, 3.2)}
+    x0 = (rng.uniform(-1.5, 0.0), rng.uniform(-10.0, 0.0), rng.uniform(2.0, 3.0))
+    t = _grid(sampling, 400.0)
+    clean, noisy = _simulated(lambda s: [s[1] - s[0] ** 3 + 3 * s[0] ** 2 - s[2] + p["I"],
+                                         1 - 5 * s[0] ** 2 - s[1],
+                                         p["r"] * (4 * (s[0] + 1.6) - s[2])],
+                              x0, t, noise, seed)
+    x, y, z = _sym("xyz")
+    r, current = sp.symbols("r I")
+    truth = {x: y - x**3 + 3 * x**2 - z + current, y: 1 - 5 * x**2 - y,
+             z: r * (4 * (x + sp.Rational(8, 5)) - z)}
+    return Draw("hindmarsh_rose", p, t, noisy[:, :2], clean[:, :2], ("x", "y"), clean[:, 2:],
+                {"rhs": truth, "hidden": [z], "values": {r: p["r"], current: p["I"]}},
+                (("x", "1"),), with_observed=True)
+
+
 FAMILIES = {
     f.name: f for f in [
         Family("lotka_volterra", "prey-only Lotka-Volterra (predator hidden)",
@@ -502,6 +588,18 @@ UNSEEN = {
                lambda: ps.PolynomialLibrary(degree=2), _sprott_b),
         Family("vdp_velocity", "Van der Pol seen through its velocity (x hidden, also "
                "inside x^2 y)", lambda: ps.PolynomialLibrary(degree=3), _vdp_velocity),
+        # added 2026-11-27 (a third batch), run once as they came
+        Family("rayleigh", "Rayleigh's oscillator, x observed (velocity hidden; its law "
+               "needs v^3)", lambda: ps.PolynomialLibrary(degree=3), _rayleigh),
+        Family("chen", "Chen's chaotic system, x and y observed (z hidden)",
+               lambda: ps.PolynomialLibrary(degree=2), _chen),
+        Family("rikitake", "Rikitake's dynamo, x and y observed (z hidden, in both "
+               "equations)", lambda: ps.PolynomialLibrary(degree=2), _rikitake),
+        Family("sprott_a", "Sprott's system A (Nose-Hoover), x and y observed (z hidden)",
+               lambda: ps.PolynomialLibrary(degree=2), _sprott_a),
+        Family("hindmarsh_rose", "Hindmarsh-Rose bursting neuron, x and y observed (the "
+               "slow current z hidden)", lambda: ps.PolynomialLibrary(degree=3),
+               _hindmarsh_rose),
     ]
 }
 ALL_FAMILIES = {**FAMILIES, **UNSEEN}
