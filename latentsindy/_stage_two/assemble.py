@@ -19,6 +19,7 @@ from .checks import (
     missing_doubts,
     observed_function_doubts,
     segment_constant_doubts,
+    unresolved_doubts,
     weak_doubts,
 )
 from .judge import build, exchangeable_terms, nearly_needed_terms, weakly_supported_terms
@@ -159,7 +160,8 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
         + weak_doubts(weakly_supported_terms(best), system, rename, names_map)
         + missing_doubts(nearly_needed_terms(best), system, rename, names_map)
         + beyond_doubts(beyond, extended, rename, names_map)
-        + observed_function_doubts(system, names_map))
+        + observed_function_doubts(system, names_map)
+        + unresolved_doubts(system, trajectories, ctx.times, names_map))
     free = free_run_doubt(result, trajectories) if best.scored else ()
     return dataclasses.replace(result, doubts=result.doubts + free) if free else result
 
