@@ -16,6 +16,8 @@ The modules, in the order :func:`discover_hidden` runs them:
    also tried restated: a hidden state and its rate as one hidden state where the
    rate's law has a first integral (``first_integral``), or its hidden states shifted
    by observed functions (``gauge``);
-4. ``assemble``: the winner, its alternatives and its doubts become the result,
-   ``result.HiddenDiscovery`` (with ``figures`` for its plot).
+4. ``assemble``: the winner, its alternatives and its doubts (``checks``; terms beyond
+   the search, ``beyond``; a nested state folded back into a law one degree higher,
+   ``folded``) become the result, ``result.HiddenDiscovery`` (with ``figures`` for its
+   plot).
 """

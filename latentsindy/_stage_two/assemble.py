@@ -22,6 +22,7 @@ from .checks import (
     unresolved_doubts,
     weak_doubts,
 )
+from .folded import folded_doubts, folded_score
 from .judge import build, exchangeable_terms, nearly_needed_terms, weakly_supported_terms
 from .nested import monomial_name
 from .result import Alternative, HiddenDiscovery, HiddenState, Refinement, Term
@@ -148,6 +149,8 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
     score, score_se = (best.cv, best.cv_se) if best.scored else (math.inf, math.nan)
     notes = _static_notes(terms, names)
     extended, beyond = beyond_terms(best, ctx.feature_exprs, ctx.free_rows)
+    folded = (folded_score(best, ctx.times, ctx.observed, ctx.closure_library)
+              if best.proposal.nested else None)
     result = HiddenDiscovery(
         ctx.times[0], ctx.observed[0], hidden[0], stds[0][:, system.n_observed:],
         tuple(observed), tuple(names), states, terms, coefs, score, score_se,
@@ -160,6 +163,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
         + weak_doubts(weakly_supported_terms(best), system, rename, names_map)
         + missing_doubts(nearly_needed_terms(best), system, rename, names_map)
         + beyond_doubts(beyond, extended, rename, names_map)
+        + folded_doubts(folded, score, score_se, best.size, names)
         + observed_function_doubts(system, names_map)
         + unresolved_doubts(system, trajectories, ctx.times, names_map))
     free = free_run_doubt(result, trajectories) if best.scored else ()
