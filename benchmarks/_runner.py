@@ -18,6 +18,10 @@ def _single_threaded():
     # forked worker would run two BLAS threads on its one core (stage two's timings
     # were 2-9x a lone call's, and varied from run to run)
     threadpool_limits(1)
+    # and no second process per call (latentsindy._core.parallel): each worker has a core
+    from latentsindy._core import parallel
+
+    parallel.enable(False)
 
 
 def _call(run, task):

@@ -242,7 +242,8 @@ SPLIT = {"stage one": ("differentiation", "stage one: exact model", "stage one: 
          "proposals and closure": ("smoothing", "proposals", "closure"),
          "refinement": ("refinement",), "term selection": ("term selection",),
          "held-out score": ("held-out score",), "restatements": ("restatements",),
-         "checks and other": ("checks and result", "other")}
+         "checks and other": ("checks and result", "other",
+                              "waiting for the second process")}
 
 
 def time_split(rows):

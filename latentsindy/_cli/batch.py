@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from joblib import Parallel, delayed
 
+from .._core import parallel
 from .._core import validation as val
 from .._stage_two.discover import discover_hidden
 
@@ -55,10 +56,13 @@ class Run:
         }
 
 
-def _one(name, x, t, library, seed, options) -> Run:
-    """One discovery on one torch thread (restored after: n_jobs=1 runs in-process)."""
+def _one(name, x, t, library, seed, options, alone=False) -> Run:
+    """One discovery on one torch thread (restored after: n_jobs=1 runs in-process);
+    with a second process for its independent pieces only when it runs ``alone``
+    (:mod:`latentsindy._core.parallel`): parallel workers have a core each."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
+    helpers = parallel.enable(alone)
     start = time.perf_counter()
     try:
         result = discover_hidden(x, library, t=t, seed=seed, verbose=False, **options)
@@ -68,6 +72,7 @@ def _one(name, x, t, library, seed, options) -> Run:
                    time.perf_counter() - start)
     finally:
         torch.set_num_threads(threads)
+        parallel.enable(helpers)
 
 
 def discover_many(recordings, library=None, *, t, seeds=(0,), n_jobs=1, backend=None,
@@ -126,7 +131,7 @@ def discover_many(recordings, library=None, *, t, seeds=(0,), n_jobs=1, backend=
     finished = {}
     runs = (_on_dask(scheduler, calls) if scheduler is not None else
             Parallel(n_jobs=n_jobs, backend=backend, return_as="generator_unordered")(
-                delayed(_one)(*call) for call in calls))
+                delayed(_one)(*call, alone=n_jobs == 1) for call in calls))
     for run in runs:
         if write is not None:
             write(run)

@@ -11,5 +11,7 @@ workflow use, and nothing that knows about either stage.
 * ``simulate``: integration with a finite step budget, blow-ups reported;
 * ``figures``: matplotlib on demand and saving figures;
 * ``saving``: the hook through which result types are written by ``latentsindy._files``;
-* ``timing``: wall time by stage (a discovery's ``timings``).
+* ``timing``: wall time by stage (a discovery's ``timings``);
+* ``threads``: one thread for torch and the BLAS on small arrays;
+* ``parallel``: independent pieces of one discovery shared with a forked helper process.
 """

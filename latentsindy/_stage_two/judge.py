@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._core.parallel import forked_map
 from . import restate
 from .field import ParametricSystem
 from .hypotheses import Context, close
@@ -21,7 +22,7 @@ from .nested import nested_proposals
 from .refine import RefineOptions
 from .shooting import BlowUp
 from .terms import ambiguities, missing_terms, weak_terms
-from .verdict import Verdict, build, finish, first_fit, unscored
+from .verdict import Verdict, build, finished, first_fit, selected_and_scored, unscored
 
 __all__ = ["Verdict", "build", "judge_all", "rank", "exchangeable_terms",
            "weakly_supported_terms", "nearly_needed_terms", "same_structure"]
@@ -76,12 +77,13 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
                 refined(p)
         trials = _without_repeats(trials)
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
-    verdicts = []
-    for t in trials:
-        if t.fit.residual_variance <= 2.0 * max(best, 1.0):
-            verdicts.append(finish(t))
-        else:
-            verdicts.append(unscored(t, "rejected"))
+    # the trials close enough to the best are finished independently of one another:
+    # on a CPU, a second core takes some of them (the same verdicts, in the same order)
+    close = [t for t in trials if t.fit.residual_variance <= 2.0 * max(best, 1.0)]
+    outcomes = (forked_map(selected_and_scored, close) if options.device == "cpu"
+                else [selected_and_scored(t) for t in close])
+    finished_by_id = {id(t): finished(t, o) for t, o in zip(close, outcomes, strict=True)}
+    verdicts = [finished_by_id.get(id(t)) or unscored(t, "rejected") for t in trials]
     ordered, uncertain = rank(verdicts)
     reduced = None
     if ordered and ordered[0].scored and not ordered[0].proposal.nested:

@@ -139,17 +139,33 @@ def first_fit(p: Proposal, ctx: Context, options, best=np.inf) -> Trial | None:
 
 def finish(trial: Trial) -> Verdict:
     """Stepwise selection and the held-out score of a refined proposal."""
+    return finished(trial, selected_and_scored(trial))
+
+
+def selected_and_scored(trial: Trial):
+    """What :func:`finish` computes, in a form that pickles (a helper process can
+    compute it, :mod:`latentsindy._core.parallel`): (fit, history, score, standard
+    error) after stepwise selection and the held-out score, or why there is no score
+    ("does not join", "blew up")."""
     # the pool includes the system's own terms, so a term swapped out can come back
     pool = trial.candidates | trial.fit.system.free
     try:
         fit, history = select_terms(trial.problem, trial.fit, pool)
         if not trial.problem.joins(fit):
-            return unscored(trial, "does not join")  # not a trajectory of the system
+            return "does not join"  # not a trajectory of the system
         cv, se, _ = cross_validate(trial.problem, fit)
     except BlowUp:
-        return unscored(trial, "blew up")
-    return Verdict(trial.proposal, fit, trial.problem, cv, se, tuple(history),
-                   trial.initial_misfit, pool)
+        return "blew up"
+    return fit, tuple(history), cv, se
+
+
+def finished(trial: Trial, outcome) -> Verdict:
+    """The verdict on ``trial`` from :func:`selected_and_scored`'s ``outcome``."""
+    if isinstance(outcome, str):
+        return unscored(trial, outcome)
+    fit, history, cv, se = outcome
+    return Verdict(trial.proposal, fit, trial.problem, cv, se, history, trial.initial_misfit,
+                   trial.candidates | trial.fit.system.free)
 
 
 def unscored(trial: Trial, why: str) -> Verdict:

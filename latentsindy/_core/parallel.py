@@ -1,0 +1,160 @@
+"""A second core for the independent pieces of one discovery: a forked helper process.
+
+A discovery runs on one thread (its arrays are small, see :mod:`.threads`), so on a
+machine with two or more cores the others sit idle. Pieces that do not depend on one
+another (the held-out folds of a score, the candidates finished after their first fit)
+can run in a forked copy of the process: it shares the parent's memory as it was at the
+fork, so no input is sent, and each result comes back pickled. :func:`forked_map` runs a
+function over the items in the parent and in one helper, each taking the next item from
+a shared queue, and returns the results in order: the same values as a loop, since
+each item is computed the same way wherever it runs.
+
+The helper is used only where it is safe and pays: on Linux (fork), with a second core
+in the process's affinity mask, with at least two items, not inside another forked map
+(nor in the helper itself), and not where switched off (:func:`enable`: ``discover_many``'s
+workers and the benchmarks' processes each have a core of their own; the callers leave
+it off for a CUDA device, whose context does not survive a fork; a user running calls
+side by side sets ``LATENTSINDY_SECOND_PROCESS=0``). Whatever goes wrong in
+the helper (an exception, a result that does not pickle, a crash, no answer in
+``patience`` seconds) costs time only: the parent computes the helper's items itself,
+so an error is raised by the parent as it would be in the loop.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import select
+import signal
+import struct
+import sys
+import time
+import warnings
+
+import torch
+
+from .timing import stage
+
+_WAIT_STAGE = "waiting for the second process"
+_MAX_ITEMS = 4096  # item indices fit the queue pipe's buffer (16 KiB of 64)
+_enabled = True
+_busy = False  # inside a forked map, in the parent or the helper: nested maps loop
+
+
+def enable(flag: bool) -> bool:
+    """Allow (True) or forbid (False) the helper process in this process; returns the
+    previous setting."""
+    global _enabled
+    previous, _enabled = _enabled, bool(flag)
+    return previous
+
+
+def available(n_items: int) -> bool:
+    """Whether :func:`forked_map` would use a helper for ``n_items`` items (never with
+    the environment variable ``LATENTSINDY_SECOND_PROCESS=0``)."""
+    if (not _enabled or _busy or not 2 <= n_items <= _MAX_ITEMS or sys.platform != "linux"
+            or os.environ.get("LATENTSINDY_SECOND_PROCESS", "1") == "0"):
+        return False
+    return len(os.sched_getaffinity(0)) >= 2
+
+
+def forked_map(func, items, patience: float = 60.0) -> list:
+    """``[func(x) for x in items]``, shared with a forked helper when :func:`available`.
+
+    ``func`` needs no pickling (the helper is a fork); its results must pickle to come
+    back (those that do not are recomputed by the parent). The parent waits for the
+    helper's last item at most ``patience`` seconds plus 20 times its own share's time.
+    """
+    items = list(items)
+    if not available(len(items)):
+        return [func(x) for x in items]
+    global _busy
+    queue_r, queue_w = os.pipe()
+    result_r, result_w = os.pipe()
+    os.write(queue_w, b"".join(struct.pack("i", k) for k in range(len(items))))
+    with warnings.catch_warnings():  # Python >= 3.12 warns on forking with threads
+        warnings.simplefilter("ignore", DeprecationWarning)
+        pid = os.fork()
+    if pid == 0:
+        _helper(func, items, queue_r, queue_w, result_r, result_w)  # never returns
+    os.close(queue_w)
+    os.close(result_w)
+    _busy = True
+    results, helper = {}, {}
+    try:
+        start = time.perf_counter()
+        while (k := _take(queue_r)) is not None:
+            results[k] = func(items[k])
+        own = time.perf_counter() - start
+        with stage(_WAIT_STAGE):
+            helper = _collect(pid, result_r, patience + 20.0 * own)
+        pid = None
+    finally:
+        _busy = False
+        os.close(queue_r)
+        os.close(result_r)
+        if pid is not None:  # the parent's own item raised: stop the helper
+            _stop(pid)
+    for k in range(len(items)):
+        if k not in results:
+            results[k] = helper[k] if k in helper else func(items[k])
+    return [results[k] for k in range(len(items))]
+
+
+def _take(fd):
+    """The next item index from the queue, or None when it is empty."""
+    data = os.read(fd, 4)
+    return struct.unpack("i", data)[0] if len(data) == 4 else None
+
+
+def _helper(func, items, queue_r, queue_w, result_r, result_w):
+    """The helper's life: take items until the queue is empty (or one fails), send the
+    results, exit without running the parent's exit handlers."""
+    global _busy
+    try:
+        _busy = True
+        torch.set_num_threads(1)  # no thread pool survives a fork; none is started
+        os.close(queue_w)
+        os.close(result_r)
+        done = {}
+        while (k := _take(queue_r)) is not None:
+            try:
+                done[k] = func(items[k])
+            except BaseException:  # noqa: BLE001 - the parent recomputes it and raises
+                break
+        try:
+            payload = pickle.dumps(done, protocol=pickle.HIGHEST_PROTOCOL)
+        except Exception:  # noqa: BLE001 - an unpicklable result: the parent does all
+            payload = b""
+        view = memoryview(payload)
+        while view:
+            view = view[os.write(result_w, view):]
+    finally:
+        os._exit(0)
+
+
+def _collect(pid, fd, timeout):
+    """The helper's results ({index: result}; {} if it failed or ran out of time)."""
+    chunks, deadline = [], time.monotonic() + timeout
+    while True:
+        left = deadline - time.monotonic()
+        if left <= 0 or not select.select([fd], [], [], left)[0]:
+            _stop(pid)
+            return {}
+        data = os.read(fd, 1 << 20)
+        if not data:
+            break
+        chunks.append(data)
+    os.waitpid(pid, 0)
+    try:
+        return pickle.loads(b"".join(chunks)) if chunks else {}
+    except Exception:  # noqa: BLE001 - a truncated payload (the helper died)
+        return {}
+
+
+def _stop(pid):
+    try:
+        os.kill(pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    os.waitpid(pid, 0)
