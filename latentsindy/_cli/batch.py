@@ -62,7 +62,8 @@ def _one(name, x, t, library, seed, options, alone=False) -> Run:
     (:mod:`latentsindy._core.parallel`): parallel workers have a core each."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    helpers = parallel.enable(alone)
+    helpers = parallel.enable(False)
+    parallel.enable(helpers and alone)  # never on where the caller switched it off
     start = time.perf_counter()
     try:
         result = discover_hidden(x, library, t=t, seed=seed, verbose=False, **options)

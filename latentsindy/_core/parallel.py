@@ -7,27 +7,31 @@ can run in a forked copy of the process: it shares the parent's memory as it was
 fork, so no input is sent, and each result comes back pickled. :func:`forked_map` runs a
 function over the items in the parent and in one helper, each taking the next item from
 a shared queue, and returns the results in order: the same values as a loop, since
-each item is computed the same way wherever it runs.
+each item is computed the same way wherever it runs (on one torch thread in both).
 
-The helper is used only where it is safe and pays: on Linux (fork), with a second core
-in the process's affinity mask, with at least two items, not inside another forked map
-(nor in the helper itself), and not where switched off (:func:`enable`: ``discover_many``'s
-workers and the benchmarks' processes each have a core of their own; the callers leave
-it off for a CUDA device, whose context does not survive a fork; a user running calls
-side by side sets ``LATENTSINDY_SECOND_PROCESS=0``). Whatever goes wrong in
-the helper (an exception, a result that does not pickle, a crash, no answer in
-``patience`` seconds) costs time only: the parent computes the helper's items itself,
-so an error is raised by the parent as it would be in the loop.
+The helper is used only where it is safe and pays (:func:`available`): on Linux (fork),
+from the main thread with no other non-daemon thread alive (a fork copies only the
+calling thread), with torch on one thread, a second core in the process's affinity
+mask, at least two items, not inside another forked map (nor in the helper itself),
+and not where switched off (:func:`enable`: ``discover_many``'s workers and the
+benchmarks' processes each have a core of their own; :func:`map_on` keeps it off for a
+CUDA device, whose context does not survive a fork; a user running calls side by side
+sets ``LATENTSINDY_SECOND_PROCESS=0``). Whatever goes wrong in the helper (an exception,
+a result that does not pickle, a crash, no answer in ``patience`` seconds) costs time
+only: the parent computes the helper's items itself, so an error is raised by the
+parent, from the first item (in the parent's order of work) that fails there.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
 import select
 import signal
 import struct
 import sys
+import threading
 import time
 import warnings
 
@@ -36,7 +40,7 @@ import torch
 from .timing import stage
 
 _WAIT_STAGE = "waiting for the second process"
-_MAX_ITEMS = 4096  # item indices fit the queue pipe's buffer (16 KiB of 64)
+_MAX_ITEMS = 1024  # the queue's item indices fit in one atomic pipe write (PIPE_BUF)
 _enabled = True
 _busy = False  # inside a forked map, in the parent or the helper: nested maps loop
 
@@ -50,12 +54,22 @@ def enable(flag: bool) -> bool:
 
 
 def available(n_items: int) -> bool:
-    """Whether :func:`forked_map` would use a helper for ``n_items`` items (never with
-    the environment variable ``LATENTSINDY_SECOND_PROCESS=0``)."""
+    """Whether :func:`forked_map` would use a helper for ``n_items`` items."""
     if (not _enabled or _busy or not 2 <= n_items <= _MAX_ITEMS or sys.platform != "linux"
-            or os.environ.get("LATENTSINDY_SECOND_PROCESS", "1") == "0"):
+            or os.environ.get("LATENTSINDY_SECOND_PROCESS", "1") == "0"
+            or threading.current_thread() is not threading.main_thread()
+            or any(not t.daemon for t in threading.enumerate()
+                   if t is not threading.main_thread())
+            or torch.get_num_threads() != 1):
         return False
     return len(os.sched_getaffinity(0)) >= 2
+
+
+def map_on(device, func, items) -> list:
+    """:func:`forked_map` on a CPU ``device``; a plain loop on any other."""
+    if torch.device(device).type == "cpu":
+        return forked_map(func, items)
+    return [func(x) for x in items]
 
 
 def forked_map(func, items, patience: float = 60.0) -> list:
@@ -68,17 +82,47 @@ def forked_map(func, items, patience: float = 60.0) -> list:
     items = list(items)
     if not available(len(items)):
         return [func(x) for x in items]
-    global _busy
-    queue_r, queue_w = os.pipe()
-    result_r, result_w = os.pipe()
-    os.write(queue_w, b"".join(struct.pack("i", k) for k in range(len(items))))
-    with warnings.catch_warnings():  # Python >= 3.12 warns on forking with threads
-        warnings.simplefilter("ignore", DeprecationWarning)
-        pid = os.fork()
+    opened = []
+    try:
+        queue_r, queue_w = os.pipe()
+        opened += [queue_r, queue_w]
+        result_r, result_w = os.pipe()
+        opened += [result_r, result_w]
+        os.set_blocking(queue_r, False)  # every item is queued before the fork
+        os.write(queue_w, b"".join(struct.pack("i", k) for k in range(len(items))))
+        os.close(queue_w)
+        opened.remove(queue_w)
+        pid = _fork()
+    except OSError:  # no pipe or no process to be had: the loop
+        for fd in opened:
+            os.close(fd)
+        return [func(x) for x in items]
     if pid == 0:
-        _helper(func, items, queue_r, queue_w, result_r, result_w)  # never returns
-    os.close(queue_w)
+        _helper(func, items, queue_r, result_r, result_w)  # never returns
     os.close(result_w)
+    return _share(func, items, pid, queue_r, result_r, patience)
+
+
+def _fork():
+    """Fork with SIGINT blocked around it (the child must not meet a Ctrl-C before it
+    is in :func:`_helper`, which ignores it; the parent gets it right after)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        with warnings.catch_warnings():  # Python >= 3.12 warns on forking with threads
+            warnings.simplefilter("ignore", DeprecationWarning)
+            pid = os.fork()
+        if pid == 0:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+    return pid
+
+
+def _share(func, items, pid, queue_r, result_r, patience):
+    """The parent's side: its own items, then the helper's results."""
+    global _busy
     _busy = True
     results, helper = {}, {}
     try:
@@ -88,7 +132,7 @@ def forked_map(func, items, patience: float = 60.0) -> list:
         own = time.perf_counter() - start
         with stage(_WAIT_STAGE):
             helper = _collect(pid, result_r, patience + 20.0 * own)
-        pid = None
+        pid = None  # reaped (or stopped) by _collect
     finally:
         _busy = False
         os.close(queue_r)
@@ -103,21 +147,24 @@ def forked_map(func, items, patience: float = 60.0) -> list:
 
 def _take(fd):
     """The next item index from the queue, or None when it is empty."""
-    data = os.read(fd, 4)
+    try:
+        data = os.read(fd, 4)
+    except BlockingIOError:
+        return None
     return struct.unpack("i", data)[0] if len(data) == 4 else None
 
 
-def _helper(func, items, queue_r, queue_w, result_r, result_w):
-    """The helper's life: take items until the queue is empty (or one fails), send the
-    results, exit without running the parent's exit handlers."""
+def _helper(func, items, queue_r, result_r, result_w):
+    """The helper's life: take items until the queue is empty (or one fails, or the
+    parent is gone), send the results, exit without the parent's exit handlers."""
     global _busy
     try:
-        _busy = True
-        torch.set_num_threads(1)  # no thread pool survives a fork; none is started
-        os.close(queue_w)
         os.close(result_r)
+        _busy = True
+        parent = os.getppid()
+        torch.set_num_threads(1)  # as in the parent (available() asks for it)
         done = {}
-        while (k := _take(queue_r)) is not None:
+        while os.getppid() == parent and (k := _take(queue_r)) is not None:
             try:
                 done[k] = func(items[k])
             except BaseException:  # noqa: BLE001 - the parent recomputes it and raises
@@ -134,18 +181,21 @@ def _helper(func, items, queue_r, queue_w, result_r, result_w):
 
 
 def _collect(pid, fd, timeout):
-    """The helper's results ({index: result}; {} if it failed or ran out of time)."""
+    """The helper's results ({index: result}; {} if it failed or ran out of time); the
+    helper is reaped either way."""
     chunks, deadline = [], time.monotonic() + timeout
+    poller = select.poll()
+    poller.register(fd, select.POLLIN | select.POLLHUP)
     while True:
         left = deadline - time.monotonic()
-        if left <= 0 or not select.select([fd], [], [], left)[0]:
+        if left <= 0 or not poller.poll(left * 1000.0):
             _stop(pid)
             return {}
         data = os.read(fd, 1 << 20)
         if not data:
             break
         chunks.append(data)
-    os.waitpid(pid, 0)
+    _reap(pid)
     try:
         return pickle.loads(b"".join(chunks)) if chunks else {}
     except Exception:  # noqa: BLE001 - a truncated payload (the helper died)
@@ -153,8 +203,12 @@ def _collect(pid, fd, timeout):
 
 
 def _stop(pid):
-    try:
+    """Kill the helper and reap it."""
+    with contextlib.suppress(ProcessLookupError):
         os.kill(pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-    os.waitpid(pid, 0)
+    _reap(pid)
+
+
+def _reap(pid):
+    with contextlib.suppress(ChildProcessError):  # SIGCHLD ignored: reaped already
+        os.waitpid(pid, 0)

@@ -15,12 +15,13 @@ law explains the data as well.
 (which hold ``h0`` alone), drops ``h1``, and gives ``h0`` a law with every monomial of
 the observed states and ``h0`` up to one degree above the hidden laws' candidates,
 started from a least-squares fit of ``h0``'s fitted rate along the fitted trajectories;
-the system is refined by integration on the same data and scored on held-out segments
-like every candidate. When it scores within the winner's band, the data cannot tell a
-second hidden variable from a higher power of the first: a doubt (:func:`folded_doubts`),
-not a verdict, since such a law lies outside the search (as in :mod:`.beyond`). On
-Lorenz seen through x (whose second hidden state is real) no cubic law in (x, h0) follows
-the data (``tests/stage_two/test_folded.py``).
+the system is refined by integration on the same data (and must join across its
+segments, as every candidate) and scored on held-out segments. When it scores within
+the winner's band, the data cannot tell a second hidden variable from a higher power
+of the first: a doubt (:func:`folded_doubts`), not a verdict, since such a law lies
+outside the search (as in :mod:`.beyond`). On Lorenz seen through x (whose second hidden
+state is real) no cubic law in (x, h0) follows the data
+(``tests/stage_two/test_folded.py``).
 """
 
 from __future__ import annotations
@@ -33,10 +34,9 @@ import pysindy as ps
 import sympy as sp
 
 from .field import ParametricSystem
+from .judge import TIE
 from .refine import Problem, cross_validate
 from .shooting import BlowUp
-
-TIE = 0.05  # scores below this (noise variances) count as perfect (judge.TIE)
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,7 @@ def folded_score(verdict, times, observed, closure_library) -> Folded | None:
     recording) and scored; None when the verdict is not a scored nested system, the
     closure library is not polynomial, the observed equations hold the nested state, or
     the folded system cannot be fitted."""
-    if not (verdict.scored and verdict.proposal.nested and verdict.candidates is not None):
+    if not (verdict.scored and verdict.proposal.nested):  # (unscored: nothing to compare)
         return None
     system = verdict.system
     n_obs = system.n_observed
@@ -77,7 +77,10 @@ def folded_score(verdict, times, observed, closure_library) -> Folded | None:
     trajectories = verdict.problem.trajectories(verdict.fit)
     if any(not np.all(np.isfinite(tr)) for tr in trajectories):
         return None
-    law = _rate_law(system, trajectories, hidden_features, kept)
+    try:
+        law = _rate_law(system, trajectories, hidden_features, kept)
+    except np.linalg.LinAlgError:
+        return None
     if law is None:
         return None
     features = tuple(dict.fromkeys([*observed_features, *hidden_features]))
@@ -95,6 +98,8 @@ def folded_score(verdict, times, observed, closure_library) -> Folded | None:
     try:
         problem = Problem(folded, times, observed, guesses, verdict.problem.options)
         fit = problem.fit(folded)
+        if not problem.joins(fit):  # not a trajectory of its system, as in the judge
+            return None
         score, score_se, _ = cross_validate(problem, fit)
     except (BlowUp, np.linalg.LinAlgError):
         return None
@@ -114,16 +119,18 @@ def _rate_law(system, trajectories, features, kept):
     design = np.column_stack([np.broadcast_to(np.asarray(v, float), (len(states),))
                               for v in columns(*states[:, :len(kept)].T)])
     norms = np.linalg.norm(design, axis=0)
-    if np.any(norms == 0) or not np.all(np.isfinite(design)):
+    if (np.any(norms == 0) or not np.all(np.isfinite(design))
+            or not np.all(np.isfinite(target))):
         return None
     values, *_ = np.linalg.lstsq(design / norms, target, rcond=None)
     return values / norms
 
 
 def folded_doubts(folded: Folded | None, score, score_se, size, names) -> tuple[str, ...]:
-    """A doubt when the folded system scores within the chosen one's band (its score
-    plus one standard error, as ``judge.rank``); ``names`` are the displayed names of
-    the chosen system's two hidden states."""
+    """A doubt when the folded system scores within the chosen system's band: its
+    ``score`` plus one standard error ``score_se``, or ``judge.TIE`` when that is less
+    (noise-free data); ``names`` are the displayed names of the chosen system's two
+    hidden states."""
     if folded is None or not folded.score <= max(score + score_se, TIE):
         return ()
     parent, nested = names

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._core.parallel import forked_map
+from .._core.parallel import map_on
 from . import restate
 from .field import ParametricSystem
 from .hypotheses import Context, close
@@ -79,11 +79,11 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
     # the trials close enough to the best are finished independently of one another:
     # on a CPU, a second core takes some of them (the same verdicts, in the same order)
-    close = [t for t in trials if t.fit.residual_variance <= 2.0 * max(best, 1.0)]
-    outcomes = (forked_map(selected_and_scored, close) if options.device == "cpu"
-                else [selected_and_scored(t) for t in close])
-    finished_by_id = {id(t): finished(t, o) for t, o in zip(close, outcomes, strict=True)}
-    verdicts = [finished_by_id.get(id(t)) or unscored(t, "rejected") for t in trials]
+    contending = [t.fit.residual_variance <= 2.0 * max(best, 1.0) for t in trials]
+    outcomes = iter(map_on(options.device, selected_and_scored,
+                           [t for t, c in zip(trials, contending, strict=True) if c]))
+    verdicts = [finished(t, next(outcomes)) if c else unscored(t, "rejected")
+                for t, c in zip(trials, contending, strict=True)]
     ordered, uncertain = rank(verdicts)
     reduced = None
     if ordered and ordered[0].scored and not ordered[0].proposal.nested:

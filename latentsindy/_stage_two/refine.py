@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from .._core.derivatives import noise_level
-from .._core.parallel import forked_map
+from .._core.parallel import map_on
 from .._core.timing import timed
 from .field import ParametricSystem
 from .shooting import BlowUp, Integrator, NormalEquations, as_array, make_groups, solve
@@ -361,8 +361,7 @@ def cross_validate(problem: Problem, fit: Fit, max_iterations=10):
         except BlowUp:
             return np.full(int(held.sum()), np.inf)
 
-    errors = (forked_map(fold, helds) if problem.options.device == "cpu"
-              else [fold(held) for held in helds])
+    errors = map_on(problem.options.device, fold, helds)
     errors = np.concatenate(errors) if errors else np.array([np.inf])
     if not np.all(np.isfinite(errors)):
         return np.inf, np.inf, errors

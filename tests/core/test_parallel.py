@@ -1,35 +1,85 @@
-"""The forked helper: the same results as a loop, in order, whatever happens to it."""
+"""The forked helper: the same results as a loop, in order, whatever happens to it.
+
+Which process takes which item is a race; the tests that need the helper to take one
+make the parent's items wait (up to 10 s) for a file the helper writes when it starts
+its first item.
+"""
 
 import os
+import sys
 import time
 
 import pytest
+import torch
 
 from latentsindy._core import parallel
-from latentsindy._core.parallel import available, forked_map
+from latentsindy._core.parallel import available, forked_map, map_on
 from latentsindy._core.timing import recording
 
 PARENT = os.getpid()
-needs_helper = pytest.mark.skipif(not available(2), reason="needs Linux and two cores")
+needs_two_cores = pytest.mark.skipif(
+    sys.platform != "linux" or len(os.sched_getaffinity(0)) < 2,
+    reason="the helper needs Linux and two cores")
 
 
-def slow_square(x):
-    time.sleep(0.05)
-    return x * x, os.getpid()
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """The helper is used with torch on one thread only (as in a discovery)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
 
 
-@needs_helper
-def test_results_are_the_loops_in_order_and_both_processes_work():
-    out = forked_map(slow_square, range(12))
+@pytest.fixture
+def started(tmp_path):
+    """A marker the helper writes as it starts an item; ``started.wait()`` blocks the
+    parent until then."""
+    path = tmp_path / "helper-started"
+
+    class Marker:
+        def mark(self):
+            if os.getpid() != PARENT:
+                path.touch()
+
+        def wait(self):
+            if os.getpid() == PARENT:
+                deadline = time.monotonic() + 10
+                while not path.exists() and time.monotonic() < deadline:
+                    time.sleep(0.005)
+
+        def seen(self):
+            return path.exists()
+
+    return Marker()
+
+
+def no_children_left():
+    try:
+        os.waitpid(-1, os.WNOHANG)
+    except ChildProcessError:
+        return True
+    return False
+
+
+@needs_two_cores
+def test_results_are_the_loops_in_order_and_both_processes_work(started):
+    def square(x):
+        started.mark()
+        started.wait()
+        return x * x, os.getpid()
+
+    out = forked_map(square, range(12))
     assert [v for v, _ in out] == [x * x for x in range(12)]
-    pids = {pid for _, pid in out}
-    assert PARENT in pids and len(pids) == 2  # the helper took some
+    assert len({pid for _, pid in out} | {PARENT}) == 2  # the helper's came back
+    assert no_children_left()
 
 
-@needs_helper
-def test_an_error_is_raised_by_the_parent_whichever_process_met_it():
+@needs_two_cores
+def test_an_error_is_raised_by_the_parent_whichever_process_met_it(started):
     def fails_on_three(x):
-        time.sleep(0.02)
+        started.mark()
+        started.wait()
         if x == 3:
             raise ValueError(f"item {x} failed")
         return x
@@ -37,82 +87,100 @@ def test_an_error_is_raised_by_the_parent_whichever_process_met_it():
     for _ in range(3):  # item 3 lands in either process
         with pytest.raises(ValueError, match="item 3 failed"):
             forked_map(fails_on_three, range(8))
-    assert [v for v, _ in forked_map(slow_square, [1, 2])] == [1, 4]  # usable after
+        assert no_children_left()
+    assert started.seen()
+    assert forked_map(lambda x: x + 1, [1, 2]) == [2, 3]  # usable after
 
 
-@needs_helper
-def test_results_that_do_not_pickle_are_computed_by_the_parent():
+@needs_two_cores
+def test_results_that_do_not_pickle_are_computed_by_the_parent(started):
     def closure(x):
-        time.sleep(0.02)
+        started.mark()
+        started.wait()
         return lambda: x + 1  # a local lambda does not pickle
 
     out = forked_map(closure, range(6))
+    assert started.seen()
     assert [f() for f in out] == [x + 1 for x in range(6)]
 
 
-@needs_helper
-def test_a_helper_that_dies_costs_time_not_results():
+@needs_two_cores
+def test_a_helper_that_dies_costs_time_not_results(started):
     def dies_in_helper(x):
-        time.sleep(0.02)
+        started.mark()
         if os.getpid() != PARENT:
             os._exit(3)
+        started.wait()
         return -x
 
     assert forked_map(dies_in_helper, range(6)) == [-x for x in range(6)]
+    assert started.seen() and no_children_left()
 
 
-@needs_helper
-def test_a_helper_that_hangs_is_stopped_after_its_patience():
+@needs_two_cores
+def test_a_helper_that_hangs_is_stopped_after_its_patience(started):
     def hangs_in_helper(x):
+        started.mark()
         if os.getpid() != PARENT:
             time.sleep(60)
-        time.sleep(0.02)
+        started.wait()
         return x
 
-    start = time.perf_counter()
+    begin = time.perf_counter()
     assert forked_map(hangs_in_helper, range(4), patience=0.5) == list(range(4))
-    assert time.perf_counter() - start < 10
+    assert time.perf_counter() - begin < 10
+    assert started.seen() and no_children_left()
 
 
-@needs_helper
-def test_nested_maps_and_a_switched_off_helper_run_as_loops():
-    def inner(x):
-        return forked_map(lambda y: os.getpid(), range(3))
-
-    for pids in forked_map(inner, range(4)):
-        assert len(set(pids)) == 1  # each inner map ran in one process
-    previous = parallel.enable(False)
-    try:
-        assert not available(2)
-        assert {pid for _, pid in forked_map(slow_square, range(6))} == {PARENT}
-    finally:
-        parallel.enable(previous)
-    assert available(2)
-
-
-@needs_helper
-def test_the_environment_switches_the_helper_off(monkeypatch):
-    monkeypatch.setenv("LATENTSINDY_SECOND_PROCESS", "0")
-    assert not available(2)
-    assert {pid for _, pid in forked_map(slow_square, range(4))} == {PARENT}
-    monkeypatch.setenv("LATENTSINDY_SECOND_PROCESS", "1")
-    assert available(2)
-
-
-def test_too_few_items_need_no_helper():
-    assert not available(1) and not available(0)
-    assert forked_map(slow_square, [3]) == [(9, PARENT)]
-    assert forked_map(slow_square, []) == []
-
-
-@needs_helper
-def test_the_parents_wait_is_a_stage_of_its_own():
+@needs_two_cores
+def test_the_parents_wait_is_a_stage_of_its_own(started):
     def slow_in_helper(x):
-        time.sleep(0.5 if os.getpid() != PARENT else 0.05)
+        started.mark()
+        if os.getpid() != PARENT:
+            time.sleep(0.5)
+        started.wait()
         return x
 
     with recording() as times:
-        assert forked_map(slow_in_helper, range(4)) == list(range(4))
-    # the helper takes an item while the parent works on its first (0.05 s) and keeps
-    # it for 0.5 s: the parent, done with the rest, waits for it, and says so
-    assert times["waiting for the second process"] > 0.2
+        assert forked_map(slow_in_helper, range(2)) == [0, 1]
+    # the parent's item waits until the helper has taken the other one, which then
+    # takes 0.5 s more: the parent waits for it, and says so
+    assert times["waiting for the second process"] > 0.3
+
+
+@needs_two_cores
+def test_nested_maps_run_as_loops(started):
+    def inner(x):
+        started.mark()
+        started.wait()
+        return forked_map(lambda y: os.getpid(), range(3))
+
+    outer = forked_map(inner, range(4))
+    assert started.seen()
+    for pids in outer:
+        assert len(set(pids)) == 1  # each inner map ran in one process
+
+
+@needs_two_cores
+def test_the_switches_and_the_conditions(monkeypatch):
+    assert available(2)
+    previous = parallel.enable(False)
+    try:
+        assert not available(2)
+        assert forked_map(lambda x: os.getpid(), range(4)) == [PARENT] * 4
+    finally:
+        parallel.enable(previous)
+    monkeypatch.setenv("LATENTSINDY_SECOND_PROCESS", "0")
+    assert not available(2)
+    monkeypatch.setenv("LATENTSINDY_SECOND_PROCESS", "1")
+    assert available(2)
+    torch.set_num_threads(2)  # the helper's arithmetic would differ from the loop's
+    assert not available(2)
+    torch.set_num_threads(1)
+    assert not available(1) and not available(0) and not available(parallel._MAX_ITEMS + 1)
+    assert map_on("meta", lambda x: os.getpid(), range(4)) == [PARENT] * 4
+
+
+def test_too_few_items_need_no_helper():
+    assert forked_map(lambda x: (x * x, os.getpid()), [3]) == [(9, PARENT)]
+    assert forked_map(lambda x: x, []) == []

@@ -75,8 +75,23 @@ def lorenz():
     return verdict_of(system, t, clean, observed_with_noise(clean)), t, clean
 
 
-def test_a_second_hidden_state_that_stands_for_a_power_of_the_first_is_doubted():
-    verdict, t, clean = rayleigh()
+def test_a_real_second_hidden_state_is_not_doubted():
+    verdict, t, clean = lorenz()
+    assert verdict.cv == pytest.approx(1.0, abs=0.15)
+    folded = folded_score(verdict, [t], [observed_with_noise(clean)], ps.PolynomialLibrary(2))
+    # no cubic law in (x, h0) follows Lorenz's x: far outside the band
+    assert folded.score > 10 * (verdict.cv + verdict.cv_se)
+    assert folded_doubts(folded, verdict.cv, verdict.cv_se, verdict.size, ("y", "z")) == ()
+
+
+@pytest.fixture(scope="module")
+def rayleigh_verdict():
+    return rayleigh()
+
+
+def test_a_second_hidden_state_that_stands_for_a_power_of_the_first_is_doubted(
+        rayleigh_verdict):
+    verdict, t, clean = rayleigh_verdict
     assert verdict.cv == pytest.approx(1.0, abs=0.15)  # the nested form is exact
     folded = folded_score(verdict, [t], [observed_with_noise(clean)], ps.PolynomialLibrary(2))
     assert folded.degree == 3
@@ -97,18 +112,8 @@ def test_a_second_hidden_state_that_stands_for_a_power_of_the_first_is_doubted()
     assert "closure_library=ps.PolynomialLibrary(degree=3)" in doubt
 
 
-def test_a_real_second_hidden_state_is_not_doubted():
-    verdict, t, clean = lorenz()
-    assert verdict.cv == pytest.approx(1.0, abs=0.15)
-    folded = folded_score(verdict, [t], [observed_with_noise(clean)], ps.PolynomialLibrary(2))
-    # no cubic law in (x, h0) follows Lorenz's x: far outside the band (or not even
-    # fitted, which is no doubt either)
-    assert folded is None or folded.score > 10 * (verdict.cv + verdict.cv_se)
-    assert folded_doubts(folded, verdict.cv, verdict.cv_se, verdict.size, ("y", "z")) == ()
-
-
-def test_only_scored_nested_systems_with_a_polynomial_closure_are_folded():
-    verdict, t, clean = rayleigh()
+def test_only_scored_nested_systems_with_a_polynomial_closure_are_folded(rayleigh_verdict):
+    verdict, t, clean = rayleigh_verdict
     data = ([t], [observed_with_noise(clean)])
     assert folded_score(verdict, *data, ps.FourierLibrary()) is None
     not_nested = SimpleNamespace(**{**vars(verdict), "proposal": SimpleNamespace(nested=())})
@@ -117,7 +122,19 @@ def test_only_scored_nested_systems_with_a_polynomial_closure_are_folded():
     assert folded_score(unscored, *data, ps.PolynomialLibrary(2)) is None
 
 
-@pytest.mark.parametrize("score, doubted", [(1.10, True), (1.11, False), (0.5, True)])
+def test_an_observed_equation_that_holds_the_nested_state_is_not_folded(rayleigh_verdict):
+    verdict, t, clean = rayleigh_verdict
+    system = verdict.system
+    coef, free = system.coef.copy(), system.free.copy()
+    c = system.features.index(H0 * H1)
+    coef[0, c], free[0, c] = 0.1, True  # x' = h0 + 0.1 h0 h1
+    changed = SimpleNamespace(**{**vars(verdict), "system": ParametricSystem(
+        system.state_names, 1, system.features, coef, free)})
+    assert folded_score(changed, [t], [observed_with_noise(clean)],
+                        ps.PolynomialLibrary(2)) is None
+
+
+@pytest.mark.parametrize("score, doubted", [(1.09, True), (1.11, False), (0.5, True)])
 def test_the_band_is_the_chosen_systems_score_plus_one_standard_error(score, doubted):
     folded = Folded(score, 0.05, 3, 12, None)
     assert bool(folded_doubts(folded, 1.0, 0.1, 9, ("h0", "h1"))) is doubted
