@@ -10,16 +10,17 @@ a shared queue, and returns the results in order: the same values as a loop, sin
 each item is computed the same way wherever it runs (on one torch thread in both).
 
 The helper is used only where it is safe and pays (:func:`available`): on Linux (fork),
-from the main thread with no other non-daemon thread alive (a fork copies only the
-calling thread), with torch on one thread, a second core in the process's affinity
-mask, at least two items, not inside another forked map (nor in the helper itself),
-and not where switched off (:func:`enable`: ``discover_many``'s workers and the
-benchmarks' processes each have a core of their own; :func:`map_on` keeps it off for a
-CUDA device, whose context does not survive a fork; a user running calls side by side
-sets ``LATENTSINDY_SECOND_PROCESS=0``). Whatever goes wrong in the helper (an exception,
-a result that does not pickle, a crash, no answer in ``patience`` seconds) costs time
-only: the parent computes the helper's items itself, so an error is raised by the
-parent, from the first item (in the parent's order of work) that fails there.
+from the main thread (so two maps never race; a fork copies only the calling thread,
+and the helper touches nothing the others hold), with torch on one thread, a second
+core in the process's affinity mask, at least two items, not inside another forked
+map (nor in the helper itself), and not where switched off (:func:`enable`:
+``discover_many``'s workers and the benchmarks' processes each have a core of their
+own; :func:`map_on` keeps it off for a CUDA device, whose context does not survive a
+fork; a user running calls side by side sets ``LATENTSINDY_SECOND_PROCESS=0``).
+Whatever goes wrong in the helper (an exception, a result that does not pickle, a
+crash, no answer in ``patience`` seconds) costs time only: the parent computes the
+helper's items itself, so an error is raised by the parent, from the first item (in
+the parent's order of work) that fails there.
 """
 
 from __future__ import annotations
@@ -58,8 +59,6 @@ def available(n_items: int) -> bool:
     if (not _enabled or _busy or not 2 <= n_items <= _MAX_ITEMS or sys.platform != "linux"
             or os.environ.get("LATENTSINDY_SECOND_PROCESS", "1") == "0"
             or threading.current_thread() is not threading.main_thread()
-            or any(not t.daemon for t in threading.enumerate()
-                   if t is not threading.main_thread())
             or torch.get_num_threads() != 1):
         return False
     return len(os.sched_getaffinity(0)) >= 2

@@ -147,3 +147,24 @@ def test_command_line_runs_a_folder_into_one_table(recordings, tmp_path, capsys)
     assert main(["discover", one, "--time", "t", "--observed", "x", "--device", "tpu",
                  "--quiet"]) == 2
     assert "device must be 'cpu' or a CUDA device" in capsys.readouterr().err
+
+
+def test_only_a_lone_run_may_use_a_second_process(monkeypatch):
+    """Parallel workers have a core each: no helper process in them; a lone run
+    (n_jobs=1) keeps the caller's setting, and the setting is restored after."""
+    from latentsindy._cli import batch
+    from latentsindy._core import parallel
+
+    seen = []
+    monkeypatch.setattr(batch, "discover_hidden",
+                        lambda *args, **kwargs: seen.append(parallel._enabled))
+    batch._one("a", None, 1.0, None, 0, {}, alone=True)
+    batch._one("a", None, 1.0, None, 0, {}, alone=False)
+    assert parallel._enabled is True
+    previous = parallel.enable(False)
+    try:
+        batch._one("a", None, 1.0, None, 0, {}, alone=True)  # switched off by the caller
+        assert parallel._enabled is False
+    finally:
+        parallel.enable(previous)
+    assert seen == [True, False, False]
