@@ -149,7 +149,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
     score, score_se = (best.cv, best.cv_se) if best.scored else (math.inf, math.nan)
     notes = _static_notes(terms, names)
     extended, beyond = beyond_terms(best, ctx.feature_exprs, ctx.free_rows)
-    folded = (folded_score(best, ctx.times, ctx.observed, ctx.closure_library)
+    folded = (folded_score(best, ctx.closure_library)
               if best.proposal.nested else None)
     result = HiddenDiscovery(
         ctx.times[0], ctx.observed[0], hidden[0], stds[0][:, system.n_observed:],

@@ -57,7 +57,7 @@ def beyond_terms(verdict, feature_exprs, free_rows):
     pool = pool | system.free
     symbols = system.symbols
     n_obs, n_states = system.n_observed, len(symbols)
-    degrees = [monomial_degree(f, symbols) for f in system.features]
+    degrees = [_degree(f, symbols) for f in system.features]
     hidden_pool = [d for c, d in enumerate(degrees) if pool[n_obs:, c].any()]
     if n_states == n_obs or any(d is None for d in hidden_pool):
         return None, []
@@ -92,7 +92,7 @@ def beyond_terms(verdict, feature_exprs, free_rows):
                       if change + price < -STRONG]
 
 
-def monomial_degree(feature, symbols):
+def _degree(feature, symbols):
     """Total degree of a monomial of the states (coefficient 1); None otherwise."""
     try:
         poly = sp.Poly(feature, *symbols)

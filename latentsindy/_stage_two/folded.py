@@ -13,7 +13,7 @@ law explains the data as well.
 
 :func:`folded_score` asks exactly that. It keeps the winner's observed equations
 (which hold ``h0`` alone), drops ``h1``, and gives ``h0`` a law with every monomial of
-the observed states and ``h0`` up to one degree above the hidden laws' candidates,
+the observed states and ``h0`` up to one degree above the closure library's,
 started from a least-squares fit of ``h0``'s fitted rate along the fitted trajectories;
 the system is refined by integration on the same data (and must join across its
 segments, as every candidate) and scored on held-out segments. When it scores within
@@ -50,13 +50,12 @@ class Folded:
     system: ParametricSystem
 
 
-def folded_score(verdict, times, observed, closure_library) -> Folded | None:
+def folded_score(verdict, closure_library) -> Folded | None:
     """The nested ``verdict``'s system folded into one hidden state whose law holds
     every monomial up to one degree above ``closure_library``'s (a pysindy
-    ``PolynomialLibrary``), refined on the same data (``times``, ``observed``: lists per
-    recording) and scored; None when the verdict is not a scored nested system, the
-    closure library is not polynomial, the observed equations hold the nested state, or
-    the folded system cannot be fitted."""
+    ``PolynomialLibrary``), refined on the verdict's data and scored; None when the
+    verdict is not a scored nested system, the closure library is not polynomial, the
+    observed equations hold the nested state, or the folded system cannot be fitted."""
     if not (verdict.scored and verdict.proposal.nested):  # (unscored: nothing to compare)
         return None
     system = verdict.system
@@ -96,7 +95,8 @@ def folded_score(verdict, times, observed, closure_library) -> Folded | None:
                               free)
     guesses = [tr[:, :n_obs + 1] for tr in trajectories]
     try:
-        problem = Problem(folded, times, observed, guesses, verdict.problem.options)
+        data = verdict.problem
+        problem = Problem(folded, data.times, data.observed, guesses, data.options)
         fit = problem.fit(folded)
         if not problem.joins(fit):  # not a trajectory of its system, as in the judge
             return None

@@ -76,9 +76,9 @@ def lorenz():
 
 
 def test_a_real_second_hidden_state_is_not_doubted():
-    verdict, t, clean = lorenz()
+    verdict, _, _ = lorenz()
     assert verdict.cv == pytest.approx(1.0, abs=0.15)
-    folded = folded_score(verdict, [t], [observed_with_noise(clean)], ps.PolynomialLibrary(2))
+    folded = folded_score(verdict, ps.PolynomialLibrary(2))
     # no cubic law in (x, h0) follows Lorenz's x: far outside the band
     assert folded.score > 10 * (verdict.cv + verdict.cv_se)
     assert folded_doubts(folded, verdict.cv, verdict.cv_se, verdict.size, ("y", "z")) == ()
@@ -91,9 +91,9 @@ def rayleigh_verdict():
 
 def test_a_second_hidden_state_that_stands_for_a_power_of_the_first_is_doubted(
         rayleigh_verdict):
-    verdict, t, clean = rayleigh_verdict
+    verdict, _, _ = rayleigh_verdict
     assert verdict.cv == pytest.approx(1.0, abs=0.15)  # the nested form is exact
-    folded = folded_score(verdict, [t], [observed_with_noise(clean)], ps.PolynomialLibrary(2))
+    folded = folded_score(verdict, ps.PolynomialLibrary(2))
     assert folded.degree == 3
     # one state, x' = h0 (its coefficient is the definition), the ten cubic monomials
     # of (x, h0), h0's initial value
@@ -113,25 +113,23 @@ def test_a_second_hidden_state_that_stands_for_a_power_of_the_first_is_doubted(
 
 
 def test_only_scored_nested_systems_with_a_polynomial_closure_are_folded(rayleigh_verdict):
-    verdict, t, clean = rayleigh_verdict
-    data = ([t], [observed_with_noise(clean)])
-    assert folded_score(verdict, *data, ps.FourierLibrary()) is None
+    verdict, _, _ = rayleigh_verdict
+    assert folded_score(verdict, ps.FourierLibrary()) is None
     not_nested = SimpleNamespace(**{**vars(verdict), "proposal": SimpleNamespace(nested=())})
-    assert folded_score(not_nested, *data, ps.PolynomialLibrary(2)) is None
+    assert folded_score(not_nested, ps.PolynomialLibrary(2)) is None
     unscored = SimpleNamespace(**{**vars(verdict), "scored": False})
-    assert folded_score(unscored, *data, ps.PolynomialLibrary(2)) is None
+    assert folded_score(unscored, ps.PolynomialLibrary(2)) is None
 
 
 def test_an_observed_equation_that_holds_the_nested_state_is_not_folded(rayleigh_verdict):
-    verdict, t, clean = rayleigh_verdict
+    verdict, _, _ = rayleigh_verdict
     system = verdict.system
     coef, free = system.coef.copy(), system.free.copy()
     c = system.features.index(H0 * H1)
     coef[0, c], free[0, c] = 0.1, True  # x' = h0 + 0.1 h0 h1
     changed = SimpleNamespace(**{**vars(verdict), "system": ParametricSystem(
         system.state_names, 1, system.features, coef, free)})
-    assert folded_score(changed, [t], [observed_with_noise(clean)],
-                        ps.PolynomialLibrary(2)) is None
+    assert folded_score(changed, ps.PolynomialLibrary(2)) is None
 
 
 @pytest.mark.parametrize("score, doubted", [(1.09, True), (1.11, False), (0.5, True)])
