@@ -531,6 +531,74 @@ def _hindmarsh_rose(rng, noise, seed, sampling=None):
                 (("x", "1"),), with_observed=True)
 
 
+# ------------------------------- a fourth batch (added 2026-11-27, run once as they came)
+def _shimizu_morioka(rng, noise, seed, sampling=None):
+    """Shimizu-Morioka's chaotic system, x and y observed: xdot = y, ydot = x - l y - x z,
+    zdot = -a z + x^2; z hidden, the coefficient of x in dy/dt."""
+    p = {"l": rng.uniform(0.7, 0.8), "a": rng.uniform(0.4, 0.45)}
+    x0 = (rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), rng.uniform(0.0, 1.0))
+    t = _grid(sampling, 150.0)
+    clean, noisy = _simulated(lambda s: [s[1], s[0] - p["l"] * s[1] - s[0] * s[2],
+                                         -p["a"] * s[2] + s[0] ** 2], x0, t, noise, seed)
+    x, y, z = _sym("xyz")
+    sl, a = sp.symbols("l a")
+    truth = {x: y, y: x - sl * y - x * z, z: -a * z + x**2}
+    return Draw("shimizu_morioka", p, t, noisy[:, :2], clean[:, :2], ("x", "y"),
+                clean[:, 2:], {"rhs": truth, "hidden": [z], "values": {sl: p["l"], a: p["a"]}},
+                (("y", "x"),), with_observed=True)
+
+
+def _rucklidge(rng, noise, seed, sampling=None):
+    """Rucklidge's convection model, x and y observed: xdot = -k x + l y - y z, ydot = x,
+    zdot = -z + y^2; z hidden, inside the coefficient of y in dx/dt."""
+    p = {"k": rng.uniform(1.9, 2.1), "l": rng.uniform(6.5, 6.9)}
+    x0 = (rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(2.0, 6.0))
+    t = _grid(sampling, 100.0)
+    clean, noisy = _simulated(lambda s: [-p["k"] * s[0] + p["l"] * s[1] - s[1] * s[2], s[0],
+                                         -s[2] + s[1] ** 2], x0, t, noise, seed)
+    x, y, z = _sym("xyz")
+    k, sl = sp.symbols("k l")
+    truth = {x: -k * x + sl * y - y * z, y: x, z: -z + y**2}
+    return Draw("rucklidge", p, t, noisy[:, :2], clean[:, :2], ("x", "y"), clean[:, 2:],
+                {"rhs": truth, "hidden": [z], "values": {k: p["k"], sl: p["l"]}},
+                (("x", "y"),), with_observed=True)
+
+
+def _arneodo(rng, noise, seed, sampling=None):
+    """Arneodo's jerk system, x and y observed: xdot = y, ydot = z, zdot = a x - b y - z
+    - x^3; z hidden, the coefficient of 1 in dy/dt (its law needs x^3, beyond the default
+    closure library)."""
+    p = {"a": rng.uniform(5.0, 5.5), "b": rng.uniform(3.4, 3.6)}
+    x0 = rng.uniform(-0.5, 0.5, 3)
+    t = _grid(sampling, 100.0)
+    clean, noisy = _simulated(lambda s: [s[1], s[2], p["a"] * s[0] - p["b"] * s[1] - s[2]
+                                         - s[0] ** 3], x0, t, noise, seed)
+    x, y, z = _sym("xyz")
+    a, b = sp.symbols("a b")
+    truth = {x: y, y: z, z: a * x - b * y - z - x**3}
+    return Draw("arneodo", p, t, noisy[:, :2], clean[:, :2], ("x", "y"), clean[:, 2:],
+                {"rhs": truth, "hidden": [z], "values": {a: p["a"], b: p["b"]}},
+                (("y", "1"),), with_observed=True)
+
+
+def _logistic_lv(rng, noise, seed, sampling=None):
+    """Predator and prey with a logistic prey, seen through the prey: xdot = x (1 - x/K)
+    - x y, ydot = -c y + b x y (damped cycles to coexistence); y is inside the
+    coefficient of x."""
+    p = {"K": rng.uniform(4.0, 8.0), "b": rng.uniform(0.6, 1.0), "c": rng.uniform(0.5, 1.0)}
+    x0 = (rng.uniform(0.2, 0.5), rng.uniform(0.2, 0.5))
+    t = _grid(sampling, 60.0)
+    clean, noisy = _simulated(lambda s: [s[0] * (1 - s[0] / p["K"]) - s[0] * s[1],
+                                         -p["c"] * s[1] + p["b"] * s[0] * s[1]],
+                              x0, t, noise, seed)
+    x, y = _sym("xy")
+    sk, b, c = sp.symbols("K b c")
+    truth = {x: x * (1 - x / sk) - x * y, y: -c * y + b * x * y}
+    return Draw("logistic_lv", p, t, noisy[:, :1], clean[:, :1], ("x",), clean[:, 1:],
+                {"rhs": truth, "hidden": [y], "values": {sk: p["K"], b: p["b"], c: p["c"]}},
+                (("x", "x"),), with_observed=True)
+
+
 FAMILIES = {
     f.name: f for f in [
         Family("lotka_volterra", "prey-only Lotka-Volterra (predator hidden)",
@@ -600,6 +668,16 @@ UNSEEN = {
         Family("hindmarsh_rose", "Hindmarsh-Rose bursting neuron, x and y observed (the "
                "slow current z hidden)", lambda: ps.PolynomialLibrary(degree=3),
                _hindmarsh_rose),
+        # added 2026-11-27 (a fourth batch), run once as they came
+        Family("shimizu_morioka", "Shimizu-Morioka's chaotic system, x and y observed (z "
+               "hidden)", lambda: ps.PolynomialLibrary(degree=2), _shimizu_morioka),
+        Family("rucklidge", "Rucklidge's convection model, x and y observed (z hidden)",
+               lambda: ps.PolynomialLibrary(degree=2), _rucklidge),
+        Family("arneodo", "Arneodo's jerk system, x and y observed (z hidden; its law "
+               "needs x^3)", lambda: ps.PolynomialLibrary(degree=3), _arneodo),
+        Family("logistic_lv", "predator and logistic prey, prey observed (predator "
+               "hidden; damped cycles)",
+               lambda: ps.PolynomialLibrary(degree=3, include_bias=False), _logistic_lv),
     ]
 }
 ALL_FAMILIES = {**FAMILIES, **UNSEEN}

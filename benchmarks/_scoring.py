@@ -192,8 +192,12 @@ def _solve_shifts(truth, found, symbols, values=None):
         return {}
     eqs = []
     for name, expr in truth.items():
-        have = set(sp.Poly(sp.expand(found[name]), *symbols).monoms())
-        for mono, coef in sp.Poly(sp.expand(expr), *symbols).as_dict().items():
+        try:
+            have = set(sp.Poly(sp.expand(found[name]), *symbols).monoms())
+            terms = sp.Poly(sp.expand(expr), *symbols).as_dict().items()
+        except sp.PolynomialError:  # the truth is no polynomial in these variables (1/x)
+            return None
+        for mono, coef in terms:
             if mono not in have:
                 eqs.append(coef)
     sol = sp.solve(eqs, shifts, dict=True) if eqs else []
