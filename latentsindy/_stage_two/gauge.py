@@ -13,6 +13,12 @@ the others: at equal size the one with fewer observed terms wins (:func:`.judge.
 A shift is only taken when the shifted hidden equations stay within the closure
 library (FitzHugh-Nagumo's ``vdot = h + v - v^3/3`` could move ``v - v^3/3`` into ``h``,
 at the price of cubic terms its closure library does not offer: the law stays as found).
+
+The same freedom makes some exchanges of terms no ambiguity at all: moving ``x^2``
+between ``dx/dt = h x - x^2/K`` and the hidden law is ``h`` shifted by ``x/K``, the
+same dynamics in another variable (a predator with a logistic prey, seen through the
+prey). :func:`same_up_to_shift` recognises such a refit, so the judge does not report
+it as "an equally good system".
 """
 
 from __future__ import annotations
@@ -113,3 +119,68 @@ def shifted_proposal(p, dropped, guesses, n_observed):
         support[i, k] = False
     return replace(p, structure=replace(p.structure, support=support),
                    hidden=[g[:, n_observed:] for g in guesses], origin=p.origin + ", shifted")
+
+
+# A refit of an exchanged system counts as the chosen one, shifted, when its hidden
+# states at every segment's start are the chosen ones' shifted by the observed function
+# the observed equations imply, to this share of their spread over the segments (two
+# fits of one system in two gauges meet at the same minimum, to the fits' stopping
+# tolerance; a system that fits as well with another law follows another hidden series).
+SHIFT_MATCH = 0.01
+
+
+def shift_between(a, b):
+    """The shift ``{h: s}`` (``s`` a polynomial in the observed states) that takes system
+    ``a`` to system ``b``'s observed equations, read off the observed equation in which
+    each hidden state appears (once, as ``h theta(x)``, with the same ``theta`` in
+    ``b``): ``b``'s there is ``a``'s with ``h = h' + s``. None when there is no such
+    shift, or it is zero (``b`` differs from ``a`` otherwise)."""
+    if a.state_names != b.state_names or a.n_observed != b.n_observed:
+        return None
+    symbols = a.symbols
+    obs, hidden = symbols[:a.n_observed], symbols[a.n_observed:]
+    rhs_a, rhs_b = a.rhs(), b.rhs()
+    shifts = {}
+    for h in hidden:
+        rows = [x for x in obs if h in rhs_a[x.name].free_symbols]
+        if len(rows) != 1 or any(h in rhs_b[x.name].free_symbols for x in obs if x not in rows):
+            return None
+        law_a, law_b = sp.expand(rhs_a[rows[0].name]), sp.expand(rhs_b[rows[0].name])
+        theta = sp.diff(law_a, h)
+        if (theta.free_symbols - set(obs) or sp.expand(sp.diff(law_b, h) - theta) != 0
+                or theta == 0):
+            return None
+        s = sp.cancel((law_b.subs(h, 0) - law_a.subs(h, 0)) / theta)
+        if s.free_symbols - set(obs) or not s.is_polynomial(*obs):
+            return None
+        if s != 0:
+            shifts[h] = sp.expand(s)
+    return shifts or None
+
+
+def same_up_to_shift(a, b) -> bool:
+    """Whether fit ``b`` is fit ``a``'s system with its hidden states shifted by a
+    function of the observed states (:func:`shift_between`): the same dynamics in
+    another variable, not another law. Checked on the hidden states at every segment's
+    start, to ``SHIFT_MATCH`` of their spread."""
+    shifts = shift_between(a.system, b.system)
+    if shifts is None or a.starts.shape != b.starts.shape:
+        return False
+    symbols = a.system.symbols
+    n_obs = a.system.n_observed
+    for h, s in shifts.items():
+        k = symbols.index(h)
+        f = sp.lambdify(symbols[:n_obs], s, modules="numpy")
+        expected = a.starts[:, k] - np.broadcast_to(f(*a.starts[:, :n_obs].T),
+                                                    (len(a.starts),))
+        spread = float(np.std(expected))
+        if not (np.all(np.isfinite(b.starts[:, k])) and spread > 0):
+            return False
+        if float(np.sqrt(np.mean((b.starts[:, k] - expected) ** 2))) > SHIFT_MATCH * spread:
+            return False
+    others = [symbols.index(h) for h in symbols[n_obs:] if h not in shifts]
+    for k in others:  # hidden states not shifted: unchanged
+        spread = float(np.std(a.starts[:, k]))
+        if float(np.sqrt(np.mean((b.starts[:, k] - a.starts[:, k]) ** 2))) > SHIFT_MATCH * spread:
+            return False
+    return True

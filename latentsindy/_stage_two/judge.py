@@ -17,6 +17,7 @@ import numpy as np
 from .._core.parallel import map_on
 from . import restate
 from .field import ParametricSystem
+from .gauge import same_up_to_shift
 from .hypotheses import Context, close
 from .nested import nested_proposals
 from .refine import RefineOptions
@@ -178,11 +179,14 @@ def _rate_candidates(proposals, ctx: Context, keep: int = 2) -> list:
 
 def exchangeable_terms(verdict: Verdict):
     """Terms of the chosen system that others could replace as well
-    (:func:`.terms.ambiguities`): [(move, misfit change)]."""
+    (:func:`.terms.ambiguities`): [(move, misfit change)]. An exchange whose refit is
+    the chosen system with a hidden state shifted by a function of the observed states
+    (:func:`.gauge.same_up_to_shift`) is the same law in another variable, not one."""
     if not verdict.scored or verdict.candidates is None:
         return []
     try:
-        return ambiguities(verdict.problem, verdict.fit, verdict.candidates)
+        return ambiguities(verdict.problem, verdict.fit, verdict.candidates,
+                           same=lambda trial: same_up_to_shift(verdict.fit, trial))
     except BlowUp:
         return []
 

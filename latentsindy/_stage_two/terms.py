@@ -98,11 +98,13 @@ def _first_better(problem, fit, model, moves, base, s2, price, tabu):
     return None
 
 
-def ambiguities(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS):
+def ambiguities(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS, same=None):
     """Swaps, merges and two-for-two exchanges of ``fit``'s terms that the data do
     not refuse: the exchanged
     system, refitted exactly, is worse by less than ``AMBIGUITY`` residual variances.
-    Returns [(move, change)], at most ``limit`` tried, most plausible first."""
+    ``same(trial)``, if given, says a refit is ``fit``'s own system in other variables
+    (:func:`.gauge.same_up_to_shift`): no ambiguity. Returns [(move, change)], at most
+    ``limit`` tried, most plausible first."""
     s2 = max(fit.residual_variance, 1.0)
     model = _Quadratic(problem, fit, candidates & ~fit.system.free)
     found = []
@@ -114,7 +116,7 @@ def ambiguities(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS):
         tried += 1
         trial = _refit(problem, fit, model, keep)
         change = None if trial is None else (trial.data_cost - fit.data_cost) / s2
-        if change is not None and change < AMBIGUITY:
+        if change is not None and change < AMBIGUITY and not (same and same(trial)):
             found.append((move, float(change)))
     return found
 

@@ -65,3 +65,74 @@ def test_no_shift_outside_the_closure_library():
     """With a closure library of degree 1 the shifted law (x h terms) is not offered."""
     verdict, ctx = verdict_in_shifted_gauge(closure_degree=1)
     assert shifted_system(verdict, ctx)[0] is None
+
+
+# ---------------------------------------------------------- an exchange that is a shift
+_X, _H = sp.symbols("x h", real=True)
+_FEATURES = (_H * _X, _X**2, _H, _X, sp.Integer(1))
+
+
+def _logistic_prey(d):
+    """A predator with a logistic prey through the prey, in the gauge ``h = 1 - x/K -
+    y + d x``: dx/dt = h x - d x^2, and h's law by the chain rule (K = 4, b = 0.6,
+    c = 0.9)."""
+    from latentsindy._stage_two.gauge import shifted_laws
+
+    k, b, c = 4.0, 0.6, 0.9
+    y = 1 - _X / k - _H
+    base = {"x": _H * _X, "h": sp.expand(-_H * _X / k - (-c * y + b * _X * y))}
+    laws = shifted_laws(base, {_H: sp.Float(d) * _X}, [_X]) if d else base
+    coef = np.array([[float(sp.expand(laws[n]).coeff(_X, e).coeff(_H, f).subs({_X: 0, _H: 0}))
+                      for e, f in ((1, 1), (2, 0), (0, 1), (1, 0), (0, 0))]
+                     for n in ("x", "h")])
+    free = coef != 0
+    free[0, 0] = False  # h is the coefficient of x
+    return ParametricSystem(("x", "h"), 1, _FEATURES, coef, free)
+
+
+def _fit(system, starts):
+    return SimpleNamespace(system=system, starts=np.asarray(starts, float))
+
+
+def test_an_exchange_that_shifts_the_hidden_state_is_the_same_system():
+    """Moving x^2 between dx/dt and h's law is the hidden state shifted by a multiple of
+    x (the same dynamics): recognised when the refit's hidden starts are the shift of
+    the chosen fit's (to a tenth of ``SHIFT_MATCH``), not when they differ by 5% of
+    their spread."""
+    from latentsindy._stage_two.gauge import SHIFT_MATCH, same_up_to_shift, shift_between
+
+    a, b = _logistic_prey(0.0), _logistic_prey(0.25)
+    assert a.coef[0, 1] == 0 and b.coef[0, 1] == pytest.approx(-0.25)
+    shifts = shift_between(a, b)
+    assert list(shifts) == [_H] and sp.expand(shifts[_H] + 0.25 * _X) == 0
+    rng = np.random.default_rng(0)
+    starts = np.column_stack([rng.uniform(0.5, 2.0, 40), rng.uniform(-0.5, 0.5, 40)])
+    shifted = starts.copy()
+    shifted[:, 1] += 0.25 * starts[:, 0]  # h' = h - s(x), s = -0.25 x
+    assert same_up_to_shift(_fit(a, starts), _fit(b, shifted))
+    off = shifted.copy()
+    off[:, 1] += 0.1 * SHIFT_MATCH * np.std(shifted[:, 1]) * rng.standard_normal(40)
+    assert same_up_to_shift(_fit(a, starts), _fit(b, off))  # a tenth of the tolerance
+    off = shifted.copy()
+    off[:, 1] += 0.05 * np.std(shifted[:, 1]) * np.sign(rng.standard_normal(40))
+    assert not same_up_to_shift(_fit(a, starts), _fit(b, off))
+
+
+def test_no_shift_where_the_observed_equations_agree_or_a_state_is_seen_twice():
+    """An exchange inside the hidden law leaves the observed equations alike: no shift
+    (a genuine ambiguity). A hidden state in two observed equations: none either."""
+    from latentsindy._stage_two.gauge import same_up_to_shift, shift_between
+
+    a = _logistic_prey(0.0)
+    other = ParametricSystem(a.state_names, 1, a.features, a.coef.copy(), a.free)
+    other.coef[1, 1] += 0.1  # another hidden law, same observed equation
+    assert shift_between(a, other) is None
+    starts = np.ones((5, 2))
+    assert not same_up_to_shift(_fit(a, starts), _fit(other, starts))
+    y, h = sp.symbols("y h", real=True)
+    features = (h * _X, h * y, _X, y)
+    coef = np.array([[1.0, 0.0, 0.2, 0.0], [0.0, 1.0, 0.0, 0.3], [0.0, 0.0, -1.0, 0.0]])
+    twice = ParametricSystem(("x", "y", "h"), 2, features, coef, coef != 0)
+    moved = ParametricSystem(twice.state_names, 2, features, coef + 0.1 * (coef != 0),
+                             twice.free)
+    assert shift_between(twice, moved) is None
