@@ -174,13 +174,13 @@ def same_up_to_shift(a, b) -> bool:
         expected = a.starts[:, k] - np.broadcast_to(f(*a.starts[:, :n_obs].T),
                                                     (len(a.starts),))
         spread = float(np.std(expected))
-        if not (np.all(np.isfinite(b.starts[:, k])) and spread > 0):
-            return False
-        if float(np.sqrt(np.mean((b.starts[:, k] - expected) ** 2))) > SHIFT_MATCH * spread:
+        gap = float(np.sqrt(np.mean((b.starts[:, k] - expected) ** 2)))
+        if not (spread > 0 and gap <= SHIFT_MATCH * spread):  # NaN fails too
             return False
     others = [symbols.index(h) for h in symbols[n_obs:] if h not in shifts]
     for k in others:  # hidden states not shifted: unchanged
         spread = float(np.std(a.starts[:, k]))
-        if float(np.sqrt(np.mean((b.starts[:, k] - a.starts[:, k]) ** 2))) > SHIFT_MATCH * spread:
+        gap = float(np.sqrt(np.mean((b.starts[:, k] - a.starts[:, k]) ** 2)))
+        if not gap <= SHIFT_MATCH * spread:  # NaN (a start that blew up) fails too
             return False
     return True

@@ -136,3 +136,15 @@ def test_no_shift_where_the_observed_equations_agree_or_a_state_is_seen_twice():
     moved = ParametricSystem(twice.state_names, 2, features, coef + 0.1 * (coef != 0),
                              twice.free)
     assert shift_between(twice, moved) is None
+
+
+def test_a_refit_that_blew_up_is_no_shift():
+    """A refit whose hidden starts are not finite is not the same system."""
+    from latentsindy._stage_two.gauge import same_up_to_shift
+
+    a, b = _logistic_prey(0.0), _logistic_prey(0.25)
+    starts = np.column_stack([np.linspace(0.5, 2.0, 10), np.linspace(-0.5, 0.5, 10)])
+    shifted = starts.copy()
+    shifted[:, 1] += 0.25 * starts[:, 0]
+    shifted[3, 1] = np.nan
+    assert not same_up_to_shift(_fit(a, starts), _fit(b, shifted))
