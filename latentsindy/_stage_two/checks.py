@@ -14,7 +14,7 @@ from scipy.integrate import solve_ivp
 
 from .field import FeatureMap
 from .first_integral import integrated_system
-from .observed_function import observed_function, state_function
+from .observed_function import NEAR, observed_function, state_function, trajectory_function
 from .terms import MARGIN
 
 # A closed system reproduces held-out data when its score (held-out misfit in noise
@@ -346,3 +346,37 @@ def unresolved_doubts(system, trajectories, times, names_map):
             f"so {name} follows the other states quasi-statically and its law is not "
             "determined by these data; a system with a hidden state fewer may describe "
             "them as well (try max_hidden, hidden_terms, or data sampled faster)",)
+
+
+def redundant_state_doubts(verdict, names_map):
+    """A doubt per hidden state that follows a polynomial of the other states along the
+    fitted trajectories, to ``NEAR`` of its spread (:func:`.observed_function.
+    trajectory_function`), where the winner has several first-order hidden states, none
+    nested: it may be another state written again, not a variable of its own. Rikitake's
+    dynamo seen through x and y came back with z twice (``h0 = z`` in dx/dt, ``h1 = z - A``
+    in dy/dt, both laws ``1 - x y`` to the fit's precision), confident; the exact check
+    (:func:`.observed_function.state_function`) misses it by the coefficients' noise."""
+    p, system = verdict.proposal, verdict.system
+    n_obs, n = system.n_observed, len(system.state_names)
+    if p.nested or p.order != 1 or n - n_obs < 2 or not verdict.scored:
+        return ()
+    trajectories = verdict.problem.trajectories(verdict.fit)
+    if not all(np.all(np.isfinite(tr)) for tr in trajectories):
+        return ()
+    symbols, out = system.symbols, []
+    for k in range(n_obs, n):
+        others = [i for i in range(n) if i != k]
+        moved = [tr[:, others + [k]] for tr in trajectories]
+        found = trajectory_function(moved, len(others), len(others),
+                                    [symbols[i] for i in others] + [symbols[k]])
+        if found is None:
+            continue
+        name = names_map.get(system.state_names[k], system.state_names[k])
+        shown = found.xreplace({f: sp.Float(f, 4) for f in found.atoms(sp.Float)}
+                               | {s: sp.Symbol(names_map.get(s.name, s.name), real=True)
+                                  for s in symbols})
+        out.append(f"{name} follows the other states along the data ({name} = {shown} to "
+                   f"{NEAR:.0%} of its spread): it may be another state written again, not "
+                   "a hidden variable of its own; a system with one hidden state fewer may "
+                   "describe the data as well")
+    return tuple(out)

@@ -159,3 +159,34 @@ def test_duffing_seen_through_x_comes_back_with_one_hidden_state(monkeypatch):
                                         feature_names=["x"], verbose=False, seed=0)
     assert len(lifted_result.hidden_names) == 2 and not lifted_result.confident
     assert any("h1 is a function of the observed states" in d for d in lifted_result.doubts)
+
+
+def _verdict(trajectory, nested=(), order=1):
+    from latentsindy._stage_two.field import ParametricSystem
+
+    names = ("x", "y", "h0", "h1")
+    system = ParametricSystem(names, 2, (sp.Integer(1),), np.zeros((4, 1)),
+                              np.zeros((4, 1), dtype=bool))
+    return SimpleNamespace(proposal=SimpleNamespace(nested=nested, order=order),
+                           system=system, scored=True, fit=None,
+                           problem=SimpleNamespace(trajectories=lambda fit: [trajectory]))
+
+
+def test_a_hidden_state_written_twice_is_a_doubt():
+    """Rikitake's dynamo came back with z twice (h0 = z, h1 = z - A, confident): a hidden
+    state that follows the others along the fitted trajectories is doubted, with the
+    relation; independent hidden states, a nested winner and a rate are not checked."""
+    from latentsindy._stage_two.checks import redundant_state_doubts
+
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 30, 1500)
+    x, y = np.sin(t), np.cos(1.3 * t)
+    z = 3 + np.cumsum(rng.standard_normal(len(t))) * 0.05
+    twice = np.column_stack([x, y, z, z - 4.8])
+    found = redundant_state_doubts(_verdict(twice), {"h0": "h0", "h1": "h1"})
+    assert len(found) == 2 and "h1 follows the other states" in found[1]
+    assert "4.8" in found[1]
+    other = 2 + np.cumsum(rng.standard_normal(len(t))) * 0.05
+    assert redundant_state_doubts(_verdict(np.column_stack([x, y, z, other])), {}) == ()
+    assert redundant_state_doubts(_verdict(twice, nested=((2, 0),)), {}) == ()
+    assert redundant_state_doubts(_verdict(twice, order=2), {}) == ()
