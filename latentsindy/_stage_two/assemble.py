@@ -166,7 +166,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
         + beyond_doubts(beyond, extended, rename, names_map)
         + folded_doubts(folded, score, score_se, best.size, names)
         + observed_function_doubts(system, names_map)
-        + redundant_state_doubts(best, names_map)
+        + redundant_state_doubts(best, names_map, trajectories)
         + unresolved_doubts(system, trajectories, ctx.times, names_map))
     free = free_run_doubt(result, trajectories) if best.scored else ()
     return dataclasses.replace(result, doubts=result.doubts + free) if free else result

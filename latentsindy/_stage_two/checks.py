@@ -348,19 +348,19 @@ def unresolved_doubts(system, trajectories, times, names_map):
             "them as well (try max_hidden, hidden_terms, or data sampled faster)",)
 
 
-def redundant_state_doubts(verdict, names_map):
+def redundant_state_doubts(verdict, names_map, trajectories):
     """A doubt per hidden state that follows a polynomial of the other states along the
     fitted trajectories, to ``NEAR`` of its spread (:func:`.observed_function.
     trajectory_function`), where the winner has several first-order hidden states, none
     nested: it may be another state written again, not a variable of its own. Rikitake's
     dynamo seen through x and y came back with z twice (``h0 = z`` in dx/dt, ``h1 = z - A``
     in dy/dt, both laws ``1 - x y`` to the fit's precision), confident; the exact check
-    (:func:`.observed_function.state_function`) misses it by the coefficients' noise."""
+    (:func:`.observed_function.state_function`) misses it by the coefficients' noise.
+    ``trajectories``: the winner's fitted states (``problem.trajectories(fit)``)."""
     p, system = verdict.proposal, verdict.system
     n_obs, n = system.n_observed, len(system.state_names)
     if p.nested or p.order != 1 or n - n_obs < 2 or not verdict.scored:
         return ()
-    trajectories = verdict.problem.trajectories(verdict.fit)
     if not all(np.all(np.isfinite(tr)) for tr in trajectories):
         return ()
     symbols, out = system.symbols, []

@@ -168,8 +168,7 @@ def _verdict(trajectory, nested=(), order=1):
     system = ParametricSystem(names, 2, (sp.Integer(1),), np.zeros((4, 1)),
                               np.zeros((4, 1), dtype=bool))
     return SimpleNamespace(proposal=SimpleNamespace(nested=nested, order=order),
-                           system=system, scored=True, fit=None,
-                           problem=SimpleNamespace(trajectories=lambda fit: [trajectory]))
+                           system=system, scored=True)
 
 
 def test_a_hidden_state_written_twice_is_a_doubt():
@@ -183,10 +182,11 @@ def test_a_hidden_state_written_twice_is_a_doubt():
     x, y = np.sin(t), np.cos(1.3 * t)
     z = 3 + np.cumsum(rng.standard_normal(len(t))) * 0.05
     twice = np.column_stack([x, y, z, z - 4.8])
-    found = redundant_state_doubts(_verdict(twice), {"h0": "h0", "h1": "h1"})
+    found = redundant_state_doubts(_verdict(twice), {"h0": "h0", "h1": "h1"}, [twice])
     assert len(found) == 2 and "h1 follows the other states" in found[1]
     assert "4.8" in found[1]
     other = 2 + np.cumsum(rng.standard_normal(len(t))) * 0.05
-    assert redundant_state_doubts(_verdict(np.column_stack([x, y, z, other])), {}) == ()
-    assert redundant_state_doubts(_verdict(twice, nested=((2, 0),)), {}) == ()
-    assert redundant_state_doubts(_verdict(twice, order=2), {}) == ()
+    independent = np.column_stack([x, y, z, other])
+    assert redundant_state_doubts(_verdict(independent), {}, [independent]) == ()
+    assert redundant_state_doubts(_verdict(twice, nested=((2, 0),)), {}, [twice]) == ()
+    assert redundant_state_doubts(_verdict(twice, order=2), {}, [twice]) == ()
