@@ -36,8 +36,12 @@ class ClosureFit:
     table : list of (threshold, n_terms, cv_error)
         Every distinct support along the path.
     fuller : ndarray or None
-        Coefficients (integral-form refit) of the support with the lowest held-out
-        error, when the one-standard-error rule chose a sparser one; None otherwise.
+        Coefficients (integral-form refit) of a richer support for the integrated
+        judge to prune: the support with the lowest held-out error, when the
+        one-standard-error rule chose a sparser one, with the constant added to every
+        hidden equation that has its own state's linear term but no constant, where
+        that state's mean exceeds its spread (see :func:`fit_closure`); None when that
+        is the chosen support.
     fuller_error : float
         That support's held-out error (NaN without one).
     """
@@ -72,6 +76,16 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
     shorter than ``span`` (the data resolve nothing finer than the differentiator's
     smoothing window).
 
+    A hidden state's decay ``-b h`` and the constant that sets its level are nearly the
+    same column where h varies little about a mean far from zero (a coefficient such as
+    ``c - a - z`` in Chen's system): held-out rates of a stage-one series cannot tell
+    ``-b h`` from ``-b' h + k``, and the rule drops the constant. Without it the law's
+    level is wrong and refinement against the data cannot add it back, so the richer
+    support (``fuller``) carries the constant wherever its equation has ``h`` but no
+    constant and h's mean exceeds its spread (about zero the two columns are far from
+    one, and the held-out rates judge the constant); the judge's term selection removes
+    it again where the data do not need it.
+
     ``edges`` (one per trajectory) are the samples at either end whose rates the
     differentiator extrapolated (half its window): they stay out of the pointwise
     selection, as they stay out of stage one's likelihood (a series cut by gaps has
@@ -85,26 +99,65 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
     names = tuple(lib.get_feature_names(list(hidden_names) + list(observed_names)))
     thetas = [np.asarray(a, dtype=float) for a in lib.transform(states)]
     inner = _interior(len(thetas), [len(a) for a in thetas], edges)
-    candidates = path(np.vstack([thetas[k][rows] for k, rows in inner]),
-                      np.vstack([np.asarray(hidden_dot[k], dtype=float)[rows]
-                                 for k, rows in inner]))
+    selection = (np.vstack([thetas[k][rows] for k, rows in inner]),
+                 np.vstack([np.asarray(hidden_dot[k], dtype=float)[rows] for k, rows in inner]))
+    candidates = path(*selection)
     chosen = _one_standard_error(candidates)
     if chosen[2] >= UNINFORMATIVE and span > 1:
         # pointwise rates too noisy for any term to predict held-out data: select in
         # integral form, which averages the noise over the span
-        weak = path(np.vstack([_integrals(a, tk, span) for a, tk in zip(thetas, times,
-                                                                        strict=True)]),
-                    np.vstack([h[span:] - h[:-span] for h in hidden]))
+        weak_selection = (np.vstack([_integrals(a, tk, span)
+                                     for a, tk in zip(thetas, times, strict=True)]),
+                          np.vstack([h[span:] - h[:-span] for h in hidden]))
+        weak = path(*weak_selection)
         if _one_standard_error(weak)[2] < UNINFORMATIVE:
-            candidates = weak
+            candidates, selection = weak, weak_selection
             chosen = _one_standard_error(weak)
     coef = refit_integral(chosen[4] != 0, thetas, hidden, times, span)
     table = [(c[0], c[1], c[2]) for c in candidates]
     best = min(candidates, key=lambda c: c[2])
-    if best[1] <= chosen[1] or chosen[2] - best[2] <= EXACT:
+    richer, error = None, float("nan")
+    if best[1] > chosen[1] and chosen[2] - best[2] > EXACT:
+        richer, error = best[4] != 0, best[2]
+    leveled = with_levels(chosen[4] != 0 if richer is None else richer, names,
+                          hidden_names, hidden)
+    if leveled is not None:
+        richer, error = leveled, support_error(*selection, leveled)
+    if richer is None:
         return ClosureFit(coef, names, lib, chosen[2], table)
-    fuller = refit_integral(best[4] != 0, thetas, hidden, times, span)
-    return ClosureFit(coef, names, lib, chosen[2], table, fuller, best[2])
+    fuller = refit_integral(richer, thetas, hidden, times, span)
+    return ClosureFit(coef, names, lib, chosen[2], table, fuller, error)
+
+
+def with_levels(support, feature_names, hidden_names, hidden=None):
+    """``support`` with the constant added to every hidden equation that has its own
+    state's linear term but no constant, where that state's mean exceeds its spread
+    (the columns nearly one); None when there is none to add (or the library has no
+    constant)."""
+    if "1" not in feature_names:
+        return None
+    one = feature_names.index("1")
+    own = [feature_names.index(h) if h in feature_names else None for h in hidden_names]
+    if hidden is not None:
+        h = np.vstack(hidden)
+        far = np.abs(h.mean(axis=0)) > h.std(axis=0)
+    else:
+        far = np.ones(len(hidden_names), dtype=bool)
+    add = [k for k, j in enumerate(own) if j is not None and support[k, j] and
+           not support[k, one] and far[k]]
+    if not add:
+        return None
+    out = np.array(support, dtype=bool, copy=True)
+    out[add, one] = True
+    return out
+
+
+def support_error(theta, target, support):
+    """Held-out error of least squares on ``support`` (as :func:`path` scores its
+    supports: normalised columns, contiguous blocks)."""
+    norms = np.linalg.norm(theta, axis=0)
+    norms[norms == 0] = 1.0
+    return _cv(_fold_grams(theta / norms, target), support)[0]
 
 
 def _interior(n_traj, lengths, edges):

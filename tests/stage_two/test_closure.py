@@ -8,9 +8,17 @@ import numpy as np
 import pysindy as ps
 import pytest
 import sympy as sp
+from scipy.integrate import solve_ivp
 
 from latentsindy import systems
-from latentsindy._stage_two.closure import ClosureFit, fit_closure, fit_rate_closure, path
+from latentsindy._stage_two.closure import (
+    ClosureFit,
+    fit_closure,
+    fit_rate_closure,
+    path,
+    support_error,
+    with_levels,
+)
 from latentsindy._stage_two.hypotheses import _carrier_pairs, fuller_closure, gauge_free_support
 from latentsindy._stage_two.smoother import (
     Structure,
@@ -35,21 +43,27 @@ def test_closure_integral_refit_is_exact_on_clean_data():
         assert {k for k, v in found.items() if v != 0} == {"y", "y x"}
         assert found["y"] == pytest.approx(-1.5, rel=1e-4)
         assert found["y x"] == pytest.approx(0.075, rel=1e-4)
-        assert fit.fuller is None  # the exact support is also the least-error one
+        # the exact support is also the least-error one; the richer support offered to
+        # the judge adds only the constant (y's own level), which exact data refit to 0
+        richer = dict(zip(fit.feature_names, fit.fuller[0], strict=True))
+        assert {k for k, v in richer.items() if v != 0} == {"1", "y", "y x"}
+        assert richer["1"] == pytest.approx(0.0, abs=1e-3)
+        assert richer["y"] == pytest.approx(-1.5, rel=1e-3)
 
 
 def test_closure_keeps_its_least_error_support_beside_the_sparser_choice():
     """With noisy rates the one-standard-error rule often picks a sparser support than
     the one of least held-out error: that one is kept (``fuller``, refitted, with its
-    error) for the judge to try; when the rule picked it, there is none."""
+    error) for the judge to try; when the rule picked it, there is none (a library
+    without a constant: no level to add, see the next test)."""
     data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000)
     y, x = data.x_clean[:, 1:2], data.x_clean[:, :1]
     ydot = data.x_dot[:, 1:2]
     offered = 0
     for seed in range(6):
         noisy = ydot + np.std(ydot) * np.random.default_rng(seed).standard_normal(ydot.shape)
-        fit = fit_closure([y], [noisy], [x], [data.t], ps.PolynomialLibrary(degree=2),
-                          ["y"], ["x"])
+        fit = fit_closure([y], [noisy], [x], [data.t], ps.PolynomialLibrary(
+            degree=2, include_bias=False), ["y"], ["x"])
         errors = [e for _, _, e in fit.table]
         if fit.fuller is None:
             assert fit.cv_error == min(errors)
@@ -58,6 +72,57 @@ def test_closure_keeps_its_least_error_support_beside_the_sparser_choice():
         assert np.count_nonzero(fit.fuller) > np.count_nonzero(fit.coef)
         assert fit.fuller_error == min(errors) < fit.cv_error
     assert offered >= 2
+
+
+def test_the_richer_support_carries_a_hidden_states_level():
+    """Chen's system with z hidden: h = c - a - z obeys dh/dt = -b h - x y + b (c - a).
+    h varies little about a mean far from zero, so its column and the constant are
+    nearly one: with rates from a noisy h the one-standard-error rule drops the
+    constant (b (c - a) = -19), and the law without it has the wrong level. The richer
+    support offered to the judge carries it, refitted close to the truth; its held-out
+    error is that support's own (``support_error``). With the constant chosen, no own
+    linear term, or a state whose mean is below its spread, nothing is added
+    (``with_levels``)."""
+    a, b, c = 35.0, 2.92, 28.5
+    t = np.linspace(0.0, 10.0, 2001)
+    sol = solve_ivp(lambda _, s: [a * (s[1] - s[0]), (c - a) * s[0] - s[0] * s[2] + c * s[1],
+                                  s[0] * s[1] - b * s[2]],
+                    (0, 10), [-3.0, 2.0, 20.0], t_eval=t, rtol=1e-10, atol=1e-10)
+    xy, h = sol.y[:2].T, (c - a) - sol.y[2:].T
+    rng = np.random.default_rng(0)
+    noisy = h + 0.02 * np.std(h) * rng.standard_normal(h.shape)
+    rates = np.gradient(noisy[:, 0], t)[:, None]
+    for span in (1, 20):
+        fit = fit_closure([noisy], [rates], [xy], [t], ps.PolynomialLibrary(degree=2),
+                          ["h"], ["x", "y"], span=span)
+        chosen = dict(zip(fit.feature_names, fit.coef[0], strict=True))
+        richer = dict(zip(fit.feature_names, fit.fuller[0], strict=True))
+        assert chosen["h"] != 0 and chosen["1"] == 0
+        assert richer["1"] == pytest.approx(b * (c - a), rel=0.1)
+        assert richer["h"] == pytest.approx(-b, rel=0.1)
+        assert richer["x y"] == pytest.approx(-1.0, rel=0.05)
+        theta = np.asarray(fit.library.transform(np.hstack([noisy, xy])))
+        assert fit.fuller_error == support_error(theta, rates, fit.fuller != 0)
+        assert fit.fuller_error != fit.cv_error
+    names = ("1", "h", "x", "h x")
+    keep = np.array([[False, True, True, False], [True, True, False, False]])
+    assert with_levels(keep, names, ("h", "g")).tolist() == [[True, True, True, False],
+                                                             [True, True, False, False]]
+    assert with_levels(keep[1:], names, ("h",)) is None  # its constant is there
+    # a state that swings about zero (mean below its spread) gets none: there its
+    # column and the constant are far from one, and held-out rates judge the constant
+    both = np.array([[False, True, False, True], [False, False, True, True]])
+    pair = ("1", "h", "g", "h g")
+    assert with_levels(both, pair, ("h", "g")).tolist() == [[True, True, False, True],
+                                                            [True, False, True, True]]
+    swings = [np.column_stack([np.sin(t), 5.0 + np.sin(t)])]  # h about 0, g about 5
+    assert with_levels(both, pair, ("h", "g"), swings).tolist() == [
+        [False, True, False, True], [True, False, True, True]]
+    assert with_levels(both, pair, ("h", "g"), [np.column_stack([np.sin(t), np.cos(t)])]) \
+        is None
+    own_absent = np.array([[True, False, True, False]])  # h, h x: no x, no constant
+    assert with_levels(own_absent, ("h", "x", "h x", "1"), ("x",)) is None
+    assert with_levels(keep[:1, 1:], names[1:], ("h",)) is None  # no constant at all
 
 
 def test_stlsq_path_contains_the_sparse_truth():
