@@ -129,20 +129,17 @@ def fit_closure(hidden, hidden_dot, observed, times, library, hidden_names, obse
     return ClosureFit(coef, names, lib, chosen[2], table, fuller, error)
 
 
-def with_levels(support, feature_names, hidden_names, hidden=None):
+def with_levels(support, feature_names, hidden_names, hidden):
     """``support`` with the constant added to every hidden equation that has its own
-    state's linear term but no constant, where that state's mean exceeds its spread
-    (the columns nearly one); None when there is none to add (or the library has no
-    constant)."""
+    state's linear term but no constant, where that state's mean over the series
+    ``hidden`` (one array per trajectory) exceeds its spread (the columns nearly one);
+    None when there is none to add (or the library has no constant)."""
     if "1" not in feature_names:
         return None
     one = feature_names.index("1")
     own = [feature_names.index(h) if h in feature_names else None for h in hidden_names]
-    if hidden is not None:
-        h = np.vstack(hidden)
-        far = np.abs(h.mean(axis=0)) > h.std(axis=0)
-    else:
-        far = np.ones(len(hidden_names), dtype=bool)
+    h = np.vstack(hidden)
+    far = np.abs(h.mean(axis=0)) > h.std(axis=0)
     add = [k for k, j in enumerate(own) if j is not None and support[k, j] and
            not support[k, one] and far[k]]
     if not add:

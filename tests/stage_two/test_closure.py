@@ -104,25 +104,26 @@ def test_the_richer_support_carries_a_hidden_states_level():
         theta = np.asarray(fit.library.transform(np.hstack([noisy, xy])))
         assert fit.fuller_error == support_error(theta, rates, fit.fuller != 0)
         assert fit.fuller_error != fit.cv_error
+    far = np.column_stack([5.0 + np.sin(t), 5.0 + np.cos(t)])  # means above spreads
     names = ("1", "h", "x", "h x")
     keep = np.array([[False, True, True, False], [True, True, False, False]])
-    assert with_levels(keep, names, ("h", "g")).tolist() == [[True, True, True, False],
-                                                             [True, True, False, False]]
-    assert with_levels(keep[1:], names, ("h",)) is None  # its constant is there
+    assert with_levels(keep, names, ("h", "g"), [far]).tolist() == [
+        [True, True, True, False], [True, True, False, False]]
+    assert with_levels(keep[1:], names, ("h",), [far[:, :1]]) is None  # its constant is there
     # a state that swings about zero (mean below its spread) gets none: there its
     # column and the constant are far from one, and held-out rates judge the constant
     both = np.array([[False, True, False, True], [False, False, True, True]])
     pair = ("1", "h", "g", "h g")
-    assert with_levels(both, pair, ("h", "g")).tolist() == [[True, True, False, True],
-                                                            [True, False, True, True]]
+    assert with_levels(both, pair, ("h", "g"), [far]).tolist() == [
+        [True, True, False, True], [True, False, True, True]]
     swings = [np.column_stack([np.sin(t), 5.0 + np.sin(t)])]  # h about 0, g about 5
     assert with_levels(both, pair, ("h", "g"), swings).tolist() == [
         [False, True, False, True], [True, False, True, True]]
     assert with_levels(both, pair, ("h", "g"), [np.column_stack([np.sin(t), np.cos(t)])]) \
         is None
     own_absent = np.array([[True, False, True, False]])  # h, h x: no x, no constant
-    assert with_levels(own_absent, ("h", "x", "h x", "1"), ("x",)) is None
-    assert with_levels(keep[:1, 1:], names[1:], ("h",)) is None  # no constant at all
+    assert with_levels(own_absent, ("h", "x", "h x", "1"), ("x",), [far[:, :1]]) is None
+    assert with_levels(keep[:1, 1:], names[1:], ("h",), [far[:, :1]]) is None  # no constant
 
 
 def test_stlsq_path_contains_the_sparse_truth():
