@@ -64,23 +64,33 @@ def available(n_items: int) -> bool:
     return len(os.sched_getaffinity(0)) >= 2
 
 
-def map_on(device, func, items) -> list:
+def map_on(device, func, items, cost=None) -> list:
     """:func:`forked_map` on a CPU ``device``; a plain loop on any other."""
     if torch.device(device).type == "cpu":
-        return forked_map(func, items)
+        return forked_map(func, items, cost=cost)
     return [func(x) for x in items]
 
 
-def forked_map(func, items, patience: float = 60.0) -> list:
+def forked_map(func, items, patience: float = 60.0, cost=None) -> list:
     """``[func(x) for x in items]``, shared with a forked helper when :func:`available`.
 
     ``func`` needs no pickling (the helper is a fork); its results must pickle to come
     back (those that do not are recomputed by the parent). The parent waits for the
     helper's last item at most ``patience`` seconds plus 20 times its own share's time.
+    ``cost`` (a number per item, optional) is what each item is expected to take: the
+    costliest are handed out first (the longest-first rule, so that neither process is
+    left with a long item at the end while the other waits); the results, and each one's
+    value, are the same whatever the order.
     """
     items = list(items)
     if not available(len(items)):
         return [func(x) for x in items]
+    queue = list(range(len(items)))
+    if cost is not None:
+        cost = [float(c) for c in cost]
+        if len(cost) != len(items):
+            raise ValueError(f"forked_map: {len(cost)} costs for {len(items)} items.")
+        queue.sort(key=lambda k: -cost[k])  # stable: equal costs keep their order
     opened = []
     try:
         queue_r, queue_w = os.pipe()
@@ -88,7 +98,7 @@ def forked_map(func, items, patience: float = 60.0) -> list:
         result_r, result_w = os.pipe()
         opened += [result_r, result_w]
         os.set_blocking(queue_r, False)  # every item is queued before the fork
-        os.write(queue_w, b"".join(struct.pack("i", k) for k in range(len(items))))
+        os.write(queue_w, b"".join(struct.pack("i", k) for k in queue))
         os.close(queue_w)
         opened.remove(queue_w)
         pid = _fork()
@@ -99,7 +109,7 @@ def forked_map(func, items, patience: float = 60.0) -> list:
     if pid == 0:
         _helper(func, items, queue_r, result_r, result_w)  # never returns
     os.close(result_w)
-    return _share(func, items, pid, queue_r, result_r, patience)
+    return _share(func, items, queue, pid, queue_r, result_r, patience)
 
 
 def _fork():
@@ -119,7 +129,7 @@ def _fork():
     return pid
 
 
-def _share(func, items, pid, queue_r, result_r, patience):
+def _share(func, items, queue, pid, queue_r, result_r, patience):
     """The parent's side: its own items, then the helper's results."""
     global _busy
     _busy = True
@@ -138,7 +148,7 @@ def _share(func, items, pid, queue_r, result_r, patience):
         os.close(result_r)
         if pid is not None:  # the parent's own item raised: stop the helper
             _stop(pid)
-    for k in range(len(items)):
+    for k in queue:  # the parent's order of work: an error comes from the first to fail
         if k not in results:
             results[k] = helper[k] if k in helper else func(items[k])
     return [results[k] for k in range(len(items))]

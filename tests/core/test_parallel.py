@@ -85,6 +85,28 @@ def test_results_are_the_loops_in_order_and_both_processes_work(started, no_help
 
 
 @needs_two_cores
+def test_the_costliest_items_are_handed_out_first(tmp_path, no_helper_left):
+    log = tmp_path / "order"
+
+    def record(x):
+        with open(log, "a") as fh:  # one short append per item: whole lines
+            fh.write(f"{x}\n")
+        time.sleep(0.1)  # far longer than a take and a write: the log keeps queue order
+        return -x
+
+    cost = [1, 5, 2, 9, 0, 3]
+    assert forked_map(record, range(6), cost=cost) == [-x for x in range(6)]
+    taken = [int(line) for line in log.read_text().split()]
+    assert sorted(taken) == list(range(6))
+    # both processes take from the front of one queue ordered 3, 1, 5, 2, 0, 4: the two
+    # costliest are the first two taken (in either order), the cheapest among the last
+    assert set(taken[:2]) == {3, 1}
+    assert 4 in taken[-2:]
+    with pytest.raises(ValueError, match="2 costs for 3 items"):
+        forked_map(record, range(3), cost=[1, 2])
+
+
+@needs_two_cores
 def test_an_error_is_raised_by_the_parent_whichever_process_met_it(started, no_helper_left):
     def fails_on_three(x):
         started.mark()
