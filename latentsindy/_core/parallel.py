@@ -26,6 +26,7 @@ the parent's order of work) that fails there.
 from __future__ import annotations
 
 import contextlib
+import mmap
 import os
 import pickle
 import select
@@ -36,6 +37,7 @@ import threading
 import time
 import warnings
 
+import numpy as np
 import torch
 
 from .timing import stage
@@ -110,6 +112,18 @@ def forked_map(func, items, patience: float = 60.0, cost=None) -> list:
         _helper(func, items, queue_r, result_r, result_w)  # never returns
     os.close(result_w)
     return _share(func, items, queue, pid, queue_r, result_r, patience)
+
+
+def shared_values(n: int) -> np.ndarray:
+    """``n`` floats (NaN at first) that the parent and the helper of a later
+    :func:`forked_map` both read and write (anonymous shared memory survives the fork):
+    what one process has found so far, for the other to use while it works. An aligned
+    float is written whole, so a reader sees either NaN or the value."""
+    if n == 0:
+        return np.empty(0)
+    values = np.frombuffer(mmap.mmap(-1, 8 * n), dtype=np.float64)
+    values[:] = np.nan
+    return values
 
 
 def _fork():

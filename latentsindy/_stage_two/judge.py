@@ -23,7 +23,7 @@ from .nested import nested_proposals
 from .refine import RefineOptions
 from .shooting import BlowUp
 from .terms import ambiguities, missing_terms, weak_terms
-from .verdict import Verdict, build, finished, first_fit, selected_and_scored, unscored
+from .verdict import Verdict, build, finished, first_fits, selected_and_scored, unscored
 
 __all__ = ["Verdict", "build", "judge_all", "rank", "exchangeable_terms",
            "weakly_supported_terms", "nearly_needed_terms", "same_structure"]
@@ -56,26 +56,18 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     the best single-hidden-state proposals with a hidden state inside the hidden
     equation (:mod:`.nested`). Returns ``rank``'s result."""
     options = options or RefineOptions()
-    trials = []
-
-    def refined(p):
-        best = min((t.fit.residual_variance for t in trials), default=np.inf)
-        t = first_fit(p, ctx, options, best)
-        if t is not None:
-            trials.append(t)
-
-    for p in proposals:
-        refined(p)
+    # each refined in order, given up against the best before it (on a CPU two at a
+    # time, the same fits: first_fits)
+    trials = first_fits(proposals, ctx, options)
     best = min((t.fit.residual_variance for t in trials), default=np.inf)
     if best > RATE_TRIGGER and max_hidden >= 2:
-        for p in _rate_candidates(proposals, ctx):
-            refined(p)
+        trials += first_fits(_rate_candidates(proposals, ctx), ctx, options, trials)
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
     if nested and best > NESTED_TRIGGER and max_hidden >= 2:
         parents = _distinct_parents(trials, NESTED_PARENTS)
-        for parent in parents:
-            for p in nested_proposals(parent.proposal, ctx):
-                refined(p)
+        trials += first_fits([p for parent in parents
+                              for p in nested_proposals(parent.proposal, ctx)],
+                             ctx, options, trials)
         trials = _without_repeats(trials)
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
     # the trials close enough to the best are finished independently of one another:

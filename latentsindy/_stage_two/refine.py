@@ -108,6 +108,39 @@ class Fit:
         return np.sqrt(np.maximum(np.diag(self.covariance), 0.0) * self.residual_variance)
 
 
+class GiveUpWatch:
+    """The give-up checks of one fit (:meth:`Problem.fit`): the data misfits at which it
+    went on, and the one at which it gave up (None if it never did).
+
+    A fit's path is the same under any bound until a check stops it, so from these the
+    fit under another bound can be told to be this same fit (:meth:`same_under`): the
+    first fits of several proposals run side by side, each with the bound known when it
+    started, and are kept exactly when the one-by-one order would have given them the
+    same fit.
+    """
+
+    def __init__(self):
+        self.went_on = []
+        self.gave_up_at = None
+        self.dof = None
+
+    def check(self, data_cost: float, limit: float) -> bool:
+        """Whether a fit at ``data_cost`` gives up against ``limit`` (recorded)."""
+        if data_cost > limit:
+            self.gave_up_at = data_cost
+            return True
+        self.went_on.append(data_cost)
+        return False
+
+    def same_under(self, give_up: float) -> bool:
+        """Whether the fit with ``give_up`` (per degree of freedom, as ``fit`` takes it)
+        would have been this one: it goes on at every check this one went on at, and
+        gives up where this one did."""
+        limit = give_up * self.dof if self.dof is not None else np.inf
+        return (all(c <= limit for c in self.went_on)
+                and (self.gave_up_at is None or self.gave_up_at > limit))
+
+
 class Problem:
     """The data, segments and weights of one refinement."""
 
@@ -208,11 +241,15 @@ class Problem:
 
     # ------------------------------------------------------------- fitting
     def fit(self, system=None, starts=None, weights=None, max_iterations=None,
-            penalties=_PENALTY, give_up=np.inf, resolution=RESOLUTION) -> Fit:
+            penalties=_PENALTY, give_up=np.inf, resolution=RESOLUTION, watch=None) -> Fit:
         """Levenberg-Marquardt with a continuity penalty raised until gaps are small.
         With ``give_up``, a fit whose misfit per degree of freedom (noise variances) is
         still above it after half its iterations, or after a pass, stops there: one
-        that cannot compete costs no more. ``resolution``: see ``RESOLUTION``."""
+        that cannot compete costs no more. ``give_up`` may be a function that returns
+        it, asked at every check (a bound that falls while the fit runs). ``watch`` (a
+        :class:`GiveUpWatch`) records the checks, so that whether another bound would
+        have stopped the fit sooner can be told afterwards. ``resolution``: see
+        ``RESOLUTION``."""
         system = system or self.system
         starts = self.initial_starts if starts is None else starts
         weights = np.ones(self.n_segments) if weights is None else weights
@@ -220,15 +257,20 @@ class Problem:
         values = system.free_values()
         total = 0
         dof = max(self.n_data - system.n_free - starts.size, 1)
-        for rho in penalties:
+        bound = give_up if callable(give_up) else (lambda: give_up)
+        watch = GiveUpWatch() if watch is None else watch
+        watch.dof = dof
+        for k, rho in enumerate(penalties):
             values, starts, eq, its, ok = _levenberg_marquardt(
                 self, system, values, starts, weights, rho, max_iterations,
-                resolution=resolution, give_up=give_up * dof)
+                resolution=resolution, give_up=lambda: bound() * dof, watch=watch)
             total += its
             status = "converged" if ok else "iteration_limit"  # of the last pass
-            if (self._gap(system.with_free(values), starts) < _GAP
-                    or eq.data_cost > give_up * dof):
+            if self._gap(system.with_free(values), starts) < _GAP:
                 break
+            if k + 1 < len(penalties):  # after the last pass nothing more is decided
+                if watch.check(eq.data_cost, bound() * dof):
+                    break
         fitted = system.with_free(values)
         return Fit(fitted, starts, eq.cost, eq.data_cost, self.n_data, self._gap(fitted, starts),
                    total, _covariance(eq, system.n_free), status, rho)
@@ -369,13 +411,15 @@ def cross_validate(problem: Problem, fit: Fit, max_iterations=10):
 
 
 def _levenberg_marquardt(problem, system, values, starts, weights, rho, max_iterations,
-                         tolerance=1e-6, resolution=RESOLUTION, give_up=np.inf):
+                         tolerance=1e-6, resolution=RESOLUTION, give_up=lambda: np.inf,
+                         watch=None):
     """Marquardt-scaled Levenberg-Marquardt; every trial point is integrated with its
     sensitivities, so an accepted step needs no second integration. Stops when a step
     lowers the cost by less than ``tolerance`` (relative), when the Gauss-Newton
     model's remaining decrease is below ``resolution`` (noise variances; no
     integration is spent on it), when no step lowers the cost, or when the data misfit
-    is above ``give_up`` after half the iterations."""
+    is above ``give_up()`` after half the iterations (``watch`` records that check)."""
+    watch = GiveUpWatch() if watch is None else watch
     n_free = system.n_free
     eq = problem.equations(system.with_free(values), starts, weights, rho)
     mu, converged, iterations, accepted = 1e-3, False, 0, True
@@ -392,7 +436,7 @@ def _levenberg_marquardt(problem, system, values, starts, weights, rho, max_iter
             if -(eq.grad @ solve(a, -eq.grad, 1e-10 * scale)) < resolution:
                 converged = True
                 break
-        if iterations >= max_iterations // 2 and eq.data_cost > give_up:
+        if iterations >= max_iterations // 2 and watch.check(eq.data_cost, give_up()):
             break
         step = solve(a, -eq.grad, mu * scale)
         iterations += 1

@@ -15,11 +15,12 @@ import numpy as np
 import sympy as sp
 
 from .._core.library import feature_expressions
+from .._core.parallel import map_on, shared_values
 from .._core.timing import stage
 from .field import ParametricSystem
 from .hypotheses import Context, Proposal
 from .nested import nested_system
-from .refine import Fit, Problem, cross_validate
+from .refine import Fit, GiveUpWatch, Problem, cross_validate
 from .shooting import BlowUp
 from .terms import select_terms
 
@@ -121,20 +122,64 @@ class Trial:
     initial_misfit: float
 
 
-def first_fit(p: Proposal, ctx: Context, options, best=np.inf) -> Trial | None:
+def first_fit(p: Proposal, ctx: Context, options, best=np.inf, watch=None) -> Trial | None:
     """``p`` refined; ``best`` is the lowest misfit reached so far: a fit whose first
-    pass ends ``HOPELESS`` times above it gets no enforcing pass (it is rejected)."""
+    pass ends ``HOPELESS`` times above it gets no enforcing pass (it is rejected).
+    ``best`` may be a function that returns it (asked at every give-up check); ``watch``
+    (a :class:`.refine.GiveUpWatch`) records the checks."""
     system, candidates, guesses = nested_system(p, ctx, build) if p.nested else build(p, ctx)
+    give_up = ((lambda: HOPELESS * max(best(), 1.0)) if callable(best)
+               else HOPELESS * max(best, 1.0))
     try:
         with stage("refinement"):
             problem = Problem(system, ctx.times, ctx.observed, guesses, options)
             initial = problem.equations(system, problem.initial_starts,
                                         np.ones(problem.n_segments), 1.0, jacobian=False)
-            fit = problem.fit(system, give_up=HOPELESS * max(best, 1.0))
+            fit = problem.fit(system, give_up=give_up, watch=watch)
     except BlowUp:
         return None  # the proposal's system cannot even be integrated from its guesses
     return Trial(p, problem, fit, candidates, float(np.sqrt(initial.data_cost /
                                                              problem.n_data)))
+
+
+def first_fits(proposals, ctx: Context, options, trials=()) -> list[Trial]:
+    """:func:`first_fit` of each proposal in order, each given up against the best
+    misfit before it (of ``trials`` and the proposals before it); those that blow up
+    are left out.
+
+    On a CPU a second process fits some of them side by side (:mod:`.._core.parallel`).
+    Each fit then gives up against the best of the fits before it that are known by
+    then, a bound that can only be higher than the one-by-one order's, so it runs at
+    least as far; its give-up checks are recorded (:class:`.refine.GiveUpWatch`) and it
+    is kept exactly when the one-by-one bound would have given the same fit, else that
+    fit is made again. So the result is the loop's, fit for fit, either way.
+    """
+    proposals = list(proposals)
+    best = min((t.fit.residual_variance for t in trials), default=np.inf)
+    found = shared_values(len(proposals))  # misfits as they are found (inf: blew up)
+
+    def side_by_side(k):
+        def known():
+            earlier = found[:k]
+            earlier = earlier[~np.isnan(earlier)]
+            return min(best, float(earlier.min())) if earlier.size else best
+
+        watch = GiveUpWatch()
+        trial = first_fit(proposals[k], ctx, options, known, watch)
+        found[k] = np.inf if trial is None else trial.fit.residual_variance
+        return trial, watch
+
+    out = []
+    for p, (trial, watch) in zip(proposals, map_on(options.device, side_by_side,
+                                                   range(len(proposals))), strict=True):
+        if not watch.same_under(HOPELESS * max(best, 1.0)):
+            trial = first_fit(p, ctx, options, best)  # the one-by-one bound stops it sooner
+        elif trial is not None:
+            trial.proposal = p  # the caller's own (a helper's trial is a copy)
+        if trial is not None:
+            out.append(trial)
+            best = min(best, trial.fit.residual_variance)
+    return out
 
 
 def finish(trial: Trial) -> Verdict:

@@ -22,7 +22,7 @@ from latentsindy._stage_two.checks import (
 )
 from latentsindy._stage_two.field import FeatureMap, ParametricSystem
 from latentsindy._stage_two.judge import rank
-from latentsindy._stage_two.refine import JOIN, Fit, Problem, cross_validate
+from latentsindy._stage_two.refine import JOIN, Fit, GiveUpWatch, Problem, cross_validate
 from latentsindy._stage_two.result import Refinement, Term
 from latentsindy._stage_two.shooting import DENSE, BlowUp, NormalEquations, as_array, solve
 from latentsindy._stage_two.terms import (
@@ -281,6 +281,43 @@ def test_stopping_at_the_resolution_stays_within_a_fraction_of_a_standard_error(
     assert change.max() < 0.3
     assert quick.iterations < tight.iterations
     assert quick.data_cost - tight.data_cost < 2 * 0.05
+
+
+def test_a_fit_tells_which_bounds_would_have_given_it_up_sooner():
+    """A wrong structure (h' constant) on prey-only LV misses by about 10^4 noise
+    variances; its give-up checks (from half of each pass's iterations, and between the
+    passes) are recorded. A bound above all of them gives the same fit, to the bit; one
+    below the first stops the fit there, and the record says so both ways; a bound
+    given as a function is asked at every check."""
+    data, guesses = lv_problem(0.01)
+    problem = Problem(lv_system(np.array([0.0, A * G, 0.0, 0.0, 0.0])), [data.t],
+                      [data.x[:, :1]], guesses)
+    watch = GiveUpWatch()
+    full = problem.fit(max_iterations=6, watch=watch)
+    assert full.residual_variance > 1e3 and len(watch.went_on) >= 3
+    assert watch.gave_up_at is None and watch.dof == problem.n_data - full.starts.size - 1
+    high = 2.0 * max(watch.went_on) / watch.dof
+    low = 0.5 * min(watch.went_on) / watch.dof
+    assert watch.same_under(high) and watch.same_under(np.inf)
+    assert not watch.same_under(low)
+    same = problem.fit(max_iterations=6, give_up=high)
+    assert same.iterations == full.iterations
+    assert np.array_equal(same.system.coef, full.system.coef)
+    assert np.array_equal(same.starts, full.starts)
+    stopped_watch = GiveUpWatch()
+    stopped = problem.fit(max_iterations=6, give_up=low, watch=stopped_watch)
+    assert stopped.iterations == 3 and stopped.iterations < full.iterations  # 6 // 2
+    assert stopped_watch.went_on == [] and stopped_watch.gave_up_at == watch.went_on[0]
+    assert stopped_watch.same_under(low) and not stopped_watch.same_under(high)
+    asked = []
+
+    def falling():  # no bound at the first check, then the low one
+        asked.append(None)
+        return np.inf if len(asked) == 1 else low
+
+    later = problem.fit(max_iterations=6, give_up=falling)
+    # asked at iterations 3 (goes on) and 4 (gives up), then after the pass (stops)
+    assert later.iterations == 4 and len(asked) == 3
 
 
 def test_refinement_recovers_exact_coefficients():

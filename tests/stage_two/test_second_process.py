@@ -3,6 +3,9 @@ digit, as one process alone."""
 
 import os
 import sys
+import time
+from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import pysindy as ps
@@ -10,6 +13,10 @@ import pytest
 
 from latentsindy import discover_hidden, systems
 from latentsindy._core import parallel
+from latentsindy._core.threads import single_thread
+from latentsindy._stage_two import verdict
+from latentsindy._stage_two.refine import GiveUpWatch
+from latentsindy._stage_two.verdict import HOPELESS
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux" or len(os.sched_getaffinity(0)) < 2,
                                 reason="the helper needs Linux and two cores")
@@ -45,3 +52,75 @@ def test_a_discovery_is_the_same_with_the_second_process_and_without(monkeypatch
     assert np.array_equal(both.hidden, alone.hidden)
     assert [a.score for a in both.alternatives] == [a.score for a in alone.alternatives]
     assert both.doubts == alone.doubts
+
+
+@dataclass(frozen=True)
+class Scripted:
+    """A stand-in proposal whose first fit is scripted: its data misfits (per degree of
+    freedom) at the give-up checks, then its final misfit, or a blow-up at the end."""
+
+    name: str
+    checks: tuple
+    final: float | None  # None: blows up after its checks
+    seconds: float
+
+
+def scripted_fit(p, ctx, options, best=np.inf, watch=None):
+    """verdict.first_fit's give-up rule on a scripted proposal."""
+    watch = GiveUpWatch() if watch is None else watch
+    watch.dof = 1
+    bound = best if callable(best) else (lambda: best)
+    time.sleep(p.seconds)
+    for cost in p.checks:
+        if watch.check(cost, HOPELESS * max(bound(), 1.0)):
+            return SimpleNamespace(proposal=p, fit=SimpleNamespace(residual_variance=cost))
+    if p.final is None:
+        return None
+    return SimpleNamespace(proposal=p, fit=SimpleNamespace(residual_variance=p.final))
+
+
+def test_first_fits_side_by_side_are_the_one_by_one_fits(monkeypatch, tmp_path):
+    """Fits that start before a better one has finished (in the other process) run on
+    under the looser bound; those the one-by-one order would have given up sooner are
+    fitted again with its bound, so every fit is the loop's."""
+    proposals = [
+        Scripted("good, slow", (5.0, 2.0), 1.0, 1.0),
+        Scripted("hopeless, would recover", (400.0, 300.0), 1.5, 0.05),  # given up at 400
+        Scripted("hopeless", (80.0,), 60.0, 0.05),  # given up at 80
+        Scripted("blows up late", (300.0,), None, 0.05),  # given up at 300 first
+        Scripted("blows up early", (), None, 0.0),
+        Scripted("fine", (3.0,), 1.2, 0.05),
+    ]
+    log = tmp_path / "calls"
+
+    def logged(p, ctx, options, best=np.inf, watch=None):
+        with open(log, "a") as fh:  # both processes append whole short lines
+            fh.write(f"{os.getpid()}|{p.name}|{'again' if not callable(best) else ''}\n")
+        return scripted_fit(p, ctx, options, best, watch)
+
+    def calls():
+        lines = log.read_text().splitlines() if log.exists() else []
+        log.unlink(missing_ok=True)
+        return [tuple(line.split("|")) for line in lines]
+
+    monkeypatch.setattr(verdict, "first_fit", logged)
+    options = SimpleNamespace(device="cpu")
+    expected = [("good, slow", 1.0), ("hopeless, would recover", 400.0), ("hopeless", 80.0),
+                ("blows up late", 300.0), ("fine", 1.2)]
+    previous = parallel.enable(False)
+    try:
+        alone = verdict.first_fits(proposals, None, options)
+    finally:
+        parallel.enable(previous)
+    assert [(t.proposal.name, t.fit.residual_variance) for t in alone] == expected
+    assert len(calls()) == len(proposals)  # one by one: each fitted once, none again
+    with single_thread():  # as in a discovery (the helper needs torch on one thread)
+        both = verdict.first_fits(proposals, None, options)
+    assert [(t.proposal.name, t.fit.residual_variance) for t in both] == expected
+    named = {p.name: p for p in proposals}
+    assert all(t.proposal is named[t.proposal.name] for t in both)  # the caller's own
+    made = calls()
+    assert len({pid for pid, _, _ in made}) == 2  # the helper fitted some
+    # the helper started the hopeless one long before the good fit was known: with no
+    # bound it recovered (1.5), so the parent fitted it again under the loop's bound
+    assert (str(os.getpid()), "hopeless, would recover", "again") in made
