@@ -148,11 +148,12 @@ def first_fits(proposals, ctx: Context, options, trials=()) -> list[Trial]:
     are left out.
 
     On a CPU a second process fits some of them side by side (:mod:`.._core.parallel`).
-    Each fit then gives up against the best of the fits before it that are known by
-    then, a bound that can only be higher than the one-by-one order's, so it runs at
-    least as far; its give-up checks are recorded (:class:`.refine.GiveUpWatch`) and it
-    is kept exactly when the one-by-one bound would have given the same fit, else that
-    fit is made again. So the result is the loop's, fit for fit, either way.
+    Each fit then gives up against the best of the fits before it that are known when
+    it checks (usually a looser bound than the one-by-one order's: an earlier fit may
+    still be running in the other process); its give-up checks are recorded
+    (:class:`.refine.GiveUpWatch`) and it is kept exactly when the one-by-one bound
+    would have given the same fit, else that fit is made again. So the result is the
+    loop's, fit for fit, either way.
     """
     proposals = list(proposals)
     best = min((t.fit.residual_variance for t in trials), default=np.inf)
