@@ -29,13 +29,20 @@ uncertain: the band includes them, and they become doubts).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from .._core.parallel import available, forked_map
+from .._core.threads import single_thread
 from .vcm_fit import EquationFit, EquationModel
 
 LOG_PRIOR_ODDS = np.log(20.0)  # price of one more term, or one more varying term
+# A climbing step expected to take this long (seconds, at the last step's pace) has its
+# neighbours fitted by two processes (side_by_side): a fork and the fits' return cost a
+# few hundredths of a second.
+SIDE_BY_SIDE = 0.15
 
 
 @dataclass(frozen=True)
@@ -71,6 +78,7 @@ class StructureSearch:
 
     def __init__(self, model: EquationModel, basis, threshold, free, support, allowed):
         self.model, self.basis, self.threshold = model, basis, threshold
+        self.pace = {}  # seconds per admissible fit lately, Gaussian (False) and adaptive
         self.free, self.fixed_support, self.allowed = free, set(support), set(allowed)
 
     def sizes(self, fit):
@@ -155,8 +163,16 @@ class StructureSearch:
 
     def climb(self, fit, adaptive):
         """Greedy ascent from ``fit``; returns the last fit and its neighbours' fits."""
+        seconds = self.pace.get(adaptive, 0.0)  # per neighbour, at the last step's pace
         while True:
-            near = [self.admissible(s, v, adaptive, fit) for s, v in self.neighbours(fit)]
+            step = self.neighbours(fit)
+            begin = time.perf_counter()
+            if seconds * len(step) >= SIDE_BY_SIDE:
+                near, ran = side_by_side(self, step, adaptive, fit)
+            else:
+                near, ran = [self.admissible(s, v, adaptive, fit) for s, v in step], 1
+            seconds = (time.perf_counter() - begin) * ran / max(len(step), 1)
+            self.pace[adaptive] = seconds
             best = max(near, key=penalised, default=None)
             if best is None or penalised(best) <= penalised(fit) + 1e-9:
                 return fit, near
@@ -170,7 +186,9 @@ class StructureSearch:
         80 nats with Gaussian slope priors and lose by 143 with adaptive ones). The fits
         made for optima not taken leave the cache as it was: where the ranking stands,
         the search is the same, fit for fit."""
+        begin = time.perf_counter()
         chosen = self.admissible(best.support, best.varying, True)
+        self.pace[True] = time.perf_counter() - begin  # an adaptive climb's first pace
         others = []
         for f in found:
             if all((f.support, f.varying) != (o.support, o.varying) for o in [best] + others):
@@ -225,3 +243,52 @@ def thresholded_constants(gram, threshold, candidates):
             break
         active = keep
     return set(active)
+
+
+def side_by_side(search: StructureSearch, step, adaptive, start):
+    """``[search.admissible(s, v, adaptive, start) for s, v in step]``, the neighbours
+    of one climbing step fitted by two processes where a second core is to be had
+    (:func:`.._core.parallel.forked_map`), with the same fits and the same cache as the
+    loop gives; returns (fits, processes used).
+
+    A neighbour's fits are the loop's unless it asked for a structure that an earlier
+    neighbour fitted in the other process (the loop would have found it cached; here
+    it was fitted again from another start): each neighbour records the structures it
+    asked for and whether they were cached (``EquationModel.looked``), and the cache is
+    rebuilt in the loop's order, neighbour by neighbour. From the first neighbour whose
+    record differs from the loop's, the rest are fitted again in order, here.
+    """
+    with single_thread():  # torch and the BLAS on one thread, in both processes
+        return _side_by_side(search, step, adaptive, start)
+
+
+def _side_by_side(search, step, adaptive, start):
+    model = search.model
+    if not available(len(step)):
+        return [search.admissible(s, v, adaptive, start) for s, v in step], 1
+    before = dict(model._cache)
+
+    def one(k):  # the fit, the structures asked for (and whether cached before), new fits
+        model.looked, known = [], set(model._cache)
+        try:
+            fit = search.admissible(*step[k], adaptive, start)
+            return (_key(fit), [(key, key in known) for key in model.looked],
+                    {key: f for key, f in model._cache.items() if key not in known})
+        finally:
+            model.looked = None
+
+    outcomes = forked_map(one, range(len(step)))
+    cache, fits = before, []
+    model._cache = cache  # the loop's cache, rebuilt in its order
+    for k, (key, looked, new) in enumerate(outcomes):
+        if any((asked in cache) != cached for asked, cached in looked):
+            fits += [search.admissible(s, v, adaptive, start) for s, v in step[k:]]
+            break
+        cache.update(new)
+        fits.append(cache[key])
+    return fits, 2
+
+
+def _key(fit: EquationFit):
+    """The cache key of a fit (``EquationModel.fit``)."""
+    return (fit.support, fit.varying, fit.adaptive)

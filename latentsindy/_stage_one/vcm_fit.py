@@ -29,6 +29,7 @@ from scipy.optimize import minimize, minimize_scalar
 from scipy.special import digamma, gammaln
 
 from .vcm import ORDER, EquationGram
+from .vcm_spread import NoSpread, Spread, covariance, penalty_band
 
 LOG_ROUGH = (-15.0, 25.0)  # bounds of log roughness (relative to the noise precision)
 LEVEL_SD = 10.0
@@ -101,22 +102,9 @@ class EquationFit:
         return np.sqrt(np.maximum(np.diag(self.constant_cov), 0.0))
 
 
-def _penalty_band(q, n_knots):
-    """Upper band (3, n_knots) of D2' diag(q) D2 in scipy's layout (row 2 - d, column j
-    holds element (j - d, j)); D2 takes second differences."""
-    qq = np.zeros(n_knots + 2)
-    qq[2:n_knots] = q  # qq[i + 2] = q_i
-    j = np.arange(n_knots)
-    off1 = np.zeros(n_knots)
-    off1[1:] = -2.0 * (qq[j[1:] + 1] + qq[j[1:]])
-    off2 = np.zeros(n_knots)
-    off2[2:] = qq[j[2:]]
-    return np.stack([off2, off1, qq[j + 2] + 4 * qq[j + 1] + qq[j]])
-
-
 def _second_difference_eigenvalues(n_knots):
     """Eigenvalues of D2'D2 (two of them zero)."""
-    return np.clip(eig_banded(_penalty_band(np.ones(n_knots - 2), n_knots),
+    return np.clip(eig_banded(penalty_band(np.ones(n_knots - 2), n_knots),
                               eigvals_only=True), 0.0, None)
 
 
@@ -177,8 +165,11 @@ class EquationModel:
         self.level = scale / LEVEL_SD**2
         self.ridge = self.level / gram.n_knots  # a series' level is the sum of its knots
         self._eig = _second_difference_eigenvalues(gram.n_knots)
-        self._uniform = _penalty_band(np.ones(gram.n_knots - 2), gram.n_knots)
+        self._uniform = penalty_band(np.ones(gram.n_knots - 2), gram.n_knots)
         self._cache: dict = {}
+        # where a list: every structure asked for is appended (the structure search's
+        # record, see structure.side_by_side)
+        self.looked = None
 
     def _prior_logdet(self, q, rough):
         if q is None:  # uniform weights: the eigenvalues of D2'D2 give it directly
@@ -194,7 +185,7 @@ class EquationModel:
         ab = st.data_band.copy()
         knots = np.arange(m_knots)
         for a in range(v):
-            pen = self._uniform if weights[a] is None else _penalty_band(weights[a], m_knots)
+            pen = self._uniform if weights[a] is None else penalty_band(weights[a], m_knots)
             for d in range(3):
                 ab[st.width - 1 - d * v, knots[d:] * v + a] += rough[a] * pen[2 - d, d:]
         if v:
@@ -255,6 +246,8 @@ class EquationModel:
         support = tuple(sorted(int(j) for j in support))
         varying = tuple(sorted(int(k) for k in varying))
         key = (support, varying, bool(adaptive) and bool(varying))
+        if self.looked is not None:
+            self.looked.append(key)
         if key not in self._cache:
             self._cache[key] = self._fit(*key, start or {})
         return self._cache[key]
@@ -281,57 +274,20 @@ class EquationModel:
             fit = EquationFit(-np.inf, support, varying, constant, log_rough,
                               np.zeros((m_knots, v)), np.zeros(len(constant)),
                               np.zeros((len(constant),) * 2), np.nan, adaptive)
-            fit._posterior.update(spline_cov=lambda: np.zeros((ORDER, m_knots, v)),
-                                  edf=lambda: np.zeros(v))
+            nothing = NoSpread(m_knots, v)
+            fit._posterior.update(spline_cov=nothing.spline_cov, edf=nothing.edf)
             return fit
         log_ev, (u, proj, schur_inv, w_b, w_c, rough, s2) = solved
-        memo = {}
+        spread = Spread(st, solved, m_knots, rough, weights, s2, self.ridge, self._uniform)
         if adaptive:  # the bound's correction needs the covariance: keep it
-            memo["cov"] = self._covariance(st, solved)
-            log_ev += self._update(st, solved, weights, memo["cov"])[1]
+            log_ev += self._update(st, solved, weights, spread.covariance())[1]
         fit = EquationFit(log_ev, support, varying, constant, log_rough, w_b.reshape(m_knots, v),
                           w_c, schur_inv * s2, s2, adaptive)
-
-        def covariance():  # per unit noise variance, computed once on demand
-            if "cov" not in memo:
-                memo["cov"] = self._covariance(st, solved)
-            return memo["cov"]
-
-        fit._posterior.update(spline_cov=lambda: covariance() * s2,
-                              edf=lambda: self._edf(covariance(), rough, weights))
+        fit._posterior.update(spline_cov=spread.spline_cov, edf=spread.edf)
         return fit
 
     def _covariance(self, st, solved):
-        """Covariance (per unit noise variance) of each varying term's spline
-        coefficients m and m + d, d < 4: (4, n_knots, v)."""
-        u, proj, schur_inv = solved[1][:3]
-        v, m_knots = len(st.varying), self.g.n_knots
-        cov = np.zeros((ORDER, m_knots, v))
-        if not v:
-            return cov
-        inv = selected_inverse(u)
-        for a in range(v):
-            for d in range(ORDER):
-                cols = np.arange(d, m_knots) * v + a
-                entry = inv[st.width - 1 - d * v, cols]
-                if len(st.constant):  # the constants' share of the covariance
-                    rows = np.arange(0, m_knots - d) * v + a
-                    entry = entry + np.einsum("ij,jk,ik->i", proj[rows], schur_inv, proj[cols])
-                cov[d, : m_knots - d, a] = entry
-        return cov
-
-    def _edf(self, cov, rough, weights):
-        """Effective degrees of freedom per varying term: knots - tr(Sigma R)."""
-        m_knots, v = cov.shape[1], cov.shape[2]
-        out = np.zeros(v)
-        for a in range(v):
-            pen = self._uniform if weights[a] is None else _penalty_band(weights[a], m_knots)
-            trace = self.ridge * float(np.sum(cov[0, :, a]))
-            for d in range(3):
-                trace += (2.0 if d else 1.0) * rough[a] * float(
-                    np.sum(pen[2 - d, d:] * cov[d, : m_knots - d, a]))
-            out[a] = m_knots - trace
-        return out
+        return covariance(st, solved, self.g.n_knots)
 
     def _update(self, st, solved, weights, cov=None):
         """Variational step for the knot weights (Gamma posteriors from the expected
@@ -360,31 +316,3 @@ class EquationModel:
                                        - 0.5 * rough[a] * expect * (mean_q - used) - kl))
             new.append(mean_q)
         return new, correction
-
-
-def selected_inverse(u: np.ndarray) -> np.ndarray:
-    """Entries of A^-1 inside the band of A = U'U, from its upper banded Cholesky factor
-    ``u`` (scipy's layout), in the same layout (Takahashi's recursion: O(n w^2) for n
-    unknowns and bandwidth w, never the dense inverse)."""
-    width, n = u.shape
-    w = width - 1
-    out = np.zeros_like(u)
-    window = np.zeros((w, w))  # Sigma[i+1 : i+1+w, i+1 : i+1+w]
-    offsets = np.arange(1, w + 1)
-    for i in range(n - 1, -1, -1):
-        m = min(w, n - 1 - i)
-        uii = u[w, i]
-        row_u = u[w - offsets[:m], i + offsets[:m]]
-        row = -(row_u @ window[:m, :m]) / uii  # Sigma[i, i+1 .. i+m]
-        sii = 1.0 / uii**2 - float(row_u @ row) / uii
-        out[w, i] = sii
-        out[w - offsets[:m], i + offsets[:m]] = row
-        if w:
-            new = np.empty((w, w))
-            new[0, 0] = sii
-            k = min(w - 1, m)
-            new[0, 1:k + 1] = row[:k]
-            new[1:k + 1, 0] = row[:k]
-            new[1:, 1:] = window[:w - 1, :w - 1]
-            window = new
-    return out

@@ -10,7 +10,8 @@ from latentsindy._core.derivatives import choose_window
 from latentsindy._stage_one import vcm
 from latentsindy._stage_one.evidence import MAX_KNOTS, VaryingCoefficients, resolution
 from latentsindy._stage_one.vcm import LevelGram, spline_basis
-from latentsindy._stage_one.vcm_fit import EquationModel, _Normal, selected_inverse
+from latentsindy._stage_one.vcm_fit import EquationModel, _Normal
+from latentsindy._stage_one.vcm_spread import selected_inverse
 
 
 def test_spline_basis_is_a_partition_of_unity():

@@ -1,0 +1,114 @@
+"""A structure search's climbing steps fitted by two processes: the same choice, the
+same cached fits in the same order, whatever the helper does."""
+
+import os
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from latentsindy._core import parallel
+from latentsindy._stage_one import structure
+from latentsindy._stage_one.evidence import VaryingCoefficients
+from latentsindy._stage_one.structure import side_by_side
+
+pytestmark = pytest.mark.skipif(sys.platform != "linux" or len(os.sched_getaffinity(0)) < 2,
+                                reason="the helper needs Linux and two cores")
+
+
+def oscillator(noise=0.01, n=1500):
+    """xdot = a(t) y, ydot = -x, a(t) = 1 + 0.5 sin(0.2 t), as in test_vcm."""
+    t = np.linspace(0, 40, n)
+    a = 1.0 + 0.5 * np.sin(0.2 * t)
+    phase = np.cumsum(np.sqrt(a)) * (t[1] - t[0])
+    x = np.column_stack([np.sin(phase) * a ** 0.25, np.cos(phase) / a ** 0.25])
+    x += noise * x.std(axis=0) * np.random.default_rng(0).standard_normal(x.shape)
+    return t, x, np.column_stack([np.ones(n), x, x ** 2])  # 1, x, y, x^2, y^2
+
+
+def test_every_step_side_by_side_gives_the_loops_search(monkeypatch):
+    t, x, theta = oscillator()
+    scale = np.sqrt(np.mean(np.gradient(x, t, axis=0) ** 2, axis=0))
+    masks = (np.ones((2, 5), bool), np.ones((2, 5), bool), np.ones(2, bool),
+             np.ones((2, 5), bool), 0.05)
+
+    def search():
+        vc = VaryingCoefficients([x], [t], [theta], scale, 0.01 * x.std(axis=0))
+        return vc.choose(*masks), [m._cache for m in vc.models]
+
+    used = []
+    real = structure.side_by_side
+
+    def counted(*args):
+        fits, ran = real(*args)
+        used.append(ran)
+        return fits, ran
+
+    monkeypatch.setattr(structure, "SIDE_BY_SIDE", 0.0)  # every step with two processes
+    monkeypatch.setattr(structure, "side_by_side", counted)
+    both, both_caches = search()
+    assert used and set(used) == {2}
+    previous = parallel.enable(False)
+    try:
+        alone, alone_caches = search()
+    finally:
+        parallel.enable(previous)
+    for a, b in zip(both, alone, strict=True):
+        assert (a.fit.support, a.fit.varying, a.fit.score, a.searched) == (
+            b.fit.support, b.fit.varying, b.fit.score, b.searched)
+        assert [(r.support, r.varying, r.score) for r in a.rivals] == [
+            (r.support, r.varying, r.score) for r in b.rivals]
+        np.testing.assert_array_equal(a.fit.spline_cov, b.fit.spline_cov)
+        np.testing.assert_array_equal(a.fit.edf, b.fit.edf)
+    for a, b in zip(both_caches, alone_caches, strict=True):
+        assert list(a) == list(b)  # the same structures, fitted in the same order
+        for key in a:
+            assert a[key].score == b[key].score
+            np.testing.assert_array_equal(a[key].spline, b[key].spline)
+            np.testing.assert_array_equal(a[key].log_rough, b[key].log_rough)
+
+
+class Scripted:
+    """A stand-in search: each neighbour asks for a chain of structures; a structure
+    fitted is stamped with the neighbour that fitted it (a fit from another start)."""
+
+    def __init__(self, chains):
+        self.chains = chains
+        self.model = self
+        self._cache, self.looked = {}, None
+
+    def admissible(self, name, _varying, _adaptive, _start):
+        time.sleep(0.05)  # long enough for the helper to take neighbours too
+        for key in self.chains[name]:
+            if self.looked is not None:
+                self.looked.append(key)
+            if key not in self._cache:
+                self._cache[key] = Stamp(key, name)
+        return self._cache[self.chains[name][-1]]
+
+
+class Stamp:
+    def __init__(self, key, fitted_by):
+        self.support, self.varying, self.adaptive = key
+        self.fitted_by = fitted_by
+
+
+def test_a_neighbour_that_needed_an_earlier_ones_fit_is_fitted_again():
+    """Neighbour b's chain ends at the structure a fitted: the loop finds it cached
+    (stamped a); side by side, b may have fitted it itself, and then it and every
+    neighbour after it are fitted again in order."""
+    chains = {name: [((j,), (), False) for j in chain] for name, chain in
+              {"a": [1, 2], "b": [3, 2], "c": [4], "d": [5, 1]}.items()}
+    step = [(name, None) for name in chains]
+    loop = Scripted(chains)
+    expected = [(f.support, f.fitted_by) for f in
+                [loop.admissible(n, None, False, None) for n, _ in step]]
+    for _ in range(3):  # which process takes which neighbour is a race
+        search = Scripted(chains)
+        fits, ran = side_by_side(search, step, False, None)
+        assert ran == 2
+        assert [(f.support, f.fitted_by) for f in fits] == expected
+        assert list(search._cache) == list(loop._cache)
+        assert [f.fitted_by for f in search._cache.values()] == [
+            f.fitted_by for f in loop._cache.values()]
