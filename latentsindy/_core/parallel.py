@@ -16,7 +16,8 @@ core in the process's affinity mask, at least two items, not inside another fork
 map (nor in the helper itself), and not where switched off (:func:`enable`:
 ``discover_many``'s workers and the benchmarks' processes each have a core of their
 own; :func:`map_on` keeps it off for a CUDA device, whose context does not survive a
-fork; a user running calls side by side sets ``LATENTSINDY_SECOND_PROCESS=0``).
+fork, and no helper is forked once this process has a CUDA context at all; a user
+running calls side by side sets ``LATENTSINDY_SECOND_PROCESS=0``).
 Whatever goes wrong in the helper (an exception, a result that does not pickle, a
 crash, no answer in ``patience`` seconds) costs time only: the parent computes the
 helper's items itself, so an error is raised by the parent, from the first item (in
@@ -61,7 +62,10 @@ def available(n_items: int) -> bool:
     if (not _enabled or _busy or not 2 <= n_items <= _MAX_ITEMS or sys.platform != "linux"
             or os.environ.get("LATENTSINDY_SECOND_PROCESS", "1") == "0"
             or threading.current_thread() is not threading.main_thread()
-            or torch.get_num_threads() != 1):
+            or torch.get_num_threads() != 1
+            # a CUDA context does not survive a fork: once one exists (a fit on a GPU),
+            # even CPU-only pieces (stage one's structure search) stay in this process
+            or torch.cuda.is_initialized()):
         return False
     return len(os.sched_getaffinity(0)) >= 2
 

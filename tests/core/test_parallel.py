@@ -207,6 +207,9 @@ def test_the_switches_and_the_conditions(monkeypatch):
     torch.set_num_threads(2)  # the helper's arithmetic would differ from the loop's
     assert not available(2)
     torch.set_num_threads(1)
+    monkeypatch.setattr(torch.cuda, "is_initialized", lambda: True)  # no fork after CUDA
+    assert not available(2)
+    monkeypatch.setattr(torch.cuda, "is_initialized", lambda: False)
     assert not available(1) and not available(0) and not available(parallel._MAX_ITEMS + 1)
     assert map_on("meta", lambda x: os.getpid(), range(4)) == [PARENT] * 4
 
