@@ -114,9 +114,9 @@ class GiveUpWatch:
 
     A fit's path is the same under any bound until a check stops it, so from these the
     fit under another bound can be told to be this same fit (:meth:`same_under`): the
-    first fits of several proposals run side by side, each with the bound known when it
-    started, and are kept exactly when the one-by-one order would have given them the
-    same fit.
+    first fits of several proposals run side by side, each with the bound known at each
+    of its checks, and are kept exactly when the one-by-one order would have given them
+    the same fit.
     """
 
     def __init__(self):

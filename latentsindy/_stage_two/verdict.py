@@ -156,21 +156,21 @@ def first_fits(proposals, ctx: Context, options, trials=()) -> list[Trial]:
     loop's, fit for fit, either way.
     """
     proposals = list(proposals)
-    best = min((t.fit.residual_variance for t in trials), default=np.inf)
+    before = min((t.fit.residual_variance for t in trials), default=np.inf)
     found = shared_values(len(proposals))  # misfits as they are found (inf: blew up)
 
     def side_by_side(k):
         def known():
             earlier = found[:k]
             earlier = earlier[~np.isnan(earlier)]
-            return min(best, float(earlier.min())) if earlier.size else best
+            return min(before, float(earlier.min())) if earlier.size else before
 
         watch = GiveUpWatch()
         trial = first_fit(proposals[k], ctx, options, known, watch)
         found[k] = np.inf if trial is None else trial.fit.residual_variance
         return trial, watch
 
-    out = []
+    out, best = [], before
     for p, (trial, watch) in zip(proposals, map_on(options.device, side_by_side,
                                                    range(len(proposals))), strict=True):
         if not watch.same_under(HOPELESS * max(best, 1.0)):
