@@ -85,6 +85,14 @@ def assess(exact, support, varying, choices, generator_mean, threshold, states, 
             upper[:, i] = np.maximum(upper[:, i], (rm + BAND * rs) * scale[i])
             doubts.append(f"d{state}/dt: {_describe(rival, fit, features)} explains the data "
                           f"as well (Bayes factor under 20): the structure is uncertain")
+        for other in (choice.apart if choice is not None else ()):
+            om, os_ = _posterior(other, basis, n_times, len(features))
+            lower[:, i] = np.minimum(lower[:, i], (om - BAND * os_) * scale[i])
+            upper[:, i] = np.maximum(upper[:, i], (om + BAND * os_) * scale[i])
+            gap = penalised(fit) - penalised(other)
+            doubts.append(f"d{state}/dt: the structure search from another start ended at "
+                          f"{_describe(other, fit, features)} (log Bayes factor {gap:.0f} "
+                          "below): the evidence has two optima, the structure is uncertain")
         if choice is not None and (choice.fit.support, choice.fit.varying) != (
                 fit.support, fit.varying):
             gap = penalised(choice.fit) - penalised(fit)

@@ -19,8 +19,10 @@ every variation:
   every term constant, and from a sequentially thresholded constant fit, so a
   generator that lost a term does not decide the outcome;
 * with Gaussian slope priors first (fast), then again with adaptive ones (a sharp
-  switch is one bend, not a rough series) from the best of the structures found, the
-  distinct ones judged by the adaptive evidence too.
+  switch is one bend, not a rough series) from the best of the structures found, and
+  also from another of them where it starts higher with adaptive priors: the better
+  end is taken, and where the two ends differ the other is kept (the evidence has two
+  optima: a doubt, and the band holds both).
 
 The result per equation is an :class:`EquationChoice`: the chosen fit and the
 admissible neighbours that score within that Bayes factor (the structure is then
@@ -52,6 +54,9 @@ class EquationChoice:
     fit: EquationFit
     rivals: tuple[EquationFit, ...]  # admissible neighbours scoring within the price
     searched: int  # structures evaluated
+    # where the adaptive climbs from two starts ended at different structures, the end
+    # not taken: the evidence's local optima disagree, so the structure is uncertain
+    apart: tuple[EquationFit, ...] = ()
 
 
 def penalised(fit: EquationFit) -> float:
@@ -178,30 +183,42 @@ class StructureSearch:
                 return fit, near
             fit = best
 
-    def _adaptive_best(self, best, found):
-        """The Gaussian search's best structure with adaptive priors, unless another of
-        the searches' optima scores higher with them (the search's criterion): the
-        Gaussian ranking can pick the wrong basin (Rucklidge's system at 1% noise: a
-        varying constant and y^2, which absorb anything, beat the true x and varying y by
-        80 nats with Gaussian slope priors and lose by 143 with adaptive ones). The fits
-        made for optima not taken leave the cache as it was: where the ranking stands,
-        the search is the same, fit for fit."""
+    def _adaptive_climbs(self, best, found):
+        """The adaptive climb from the Gaussian search's best structure and, where
+        another of the searches' optima scores higher with adaptive priors at its start,
+        from that one too; returns the higher end (the first on a tie).
+
+        The Gaussian ranking can pick the wrong basin (Rucklidge's system at 1% noise:
+        a varying constant and y^2, which absorb anything, beat the true x and varying y
+        by 80 nats with Gaussian slope priors and lose by 143 with adaptive ones), but
+        a start that scores higher is not a higher end either: Lorenz with a switching
+        sigma (the paper's case, seeds 1 and 2) went from the better start (x constant,
+        y and z varying) to a wrong local optimum, below where the Gaussian best's
+        climb ends (the truth). Both climbs, the better end taken; the Gaussian best's
+        climb runs first, on the cache as it was, so where it wins the search is the
+        same, fit for fit.
+
+        Returns ``(fit, near, other)``: the higher end, its neighbours, and the other
+        end where the two climbs ended at different structures (else None)."""
         begin = time.perf_counter()
         chosen = self.admissible(best.support, best.varying, True)
         self.pace[True] = time.perf_counter() - begin  # an adaptive climb's first pace
+        ends = [self.climb(chosen, True)]
         others = []
         for f in found:
-            if all((f.support, f.varying) != (o.support, o.varying) for o in [best] + others):
+            if not any(_same(f, o) for o in [best, *others]):
                 others.append(f)
         if not others:
-            return chosen
+            return (*ends[0], None)
         cache = dict(self.model._cache)
         rival = max((self.admissible(f.support, f.varying, True) for f in others),
                     key=penalised)
-        if penalised(rival) > penalised(chosen):
-            return rival
-        self.model._cache = cache
-        return chosen
+        if penalised(rival) <= penalised(chosen):
+            self.model._cache = cache
+            return (*ends[0], None)
+        ends.append(self.climb(rival, True))
+        (fit, near), (other, _) = sorted(ends, key=lambda end: -penalised(end[0]))
+        return fit, near, None if _same(other, fit) else other
 
     def run(self, starts, proposed=()) -> EquationChoice:
         """Search from every (support, varying) in ``starts``, Gaussian then adaptive;
@@ -211,14 +228,22 @@ class StructureSearch:
             starts = [(self.fixed_support, v) for _, v in starts]
         found = [self.climb(self.admissible(s, v, False), False)[0] for s, v in starts]
         best = max(found, key=penalised)
-        fit, near = self.climb(self._adaptive_best(best, found), True)
+        fit, near, other = self._adaptive_climbs(best, found)
         proposed = set(proposed)
         reduced = self.earned(fit, proposed)
         if reduced is not fit:
             fit, near = reduced, [self.admissible(s, v, True, reduced)
                                   for s, v in self.neighbours(reduced)]
         rivals = tuple(f for f in near if self._is_rival(f, fit, proposed))
-        return EquationChoice(fit, rivals, len(self.model._cache))
+        # the other climb's end, unless it is the choice or among its rivals already
+        apart = () if other is None or any(_same(other, f) for f in (fit, *rivals)) else (
+            other,)
+        return EquationChoice(fit, rivals, len(self.model._cache), apart)
+
+
+def _same(a, b) -> bool:
+    """Whether two fits have the same structure (support and varying terms)."""
+    return (a.support, a.varying) == (b.support, b.varying)
 
 
 def _earns(fit, without):
