@@ -7,7 +7,8 @@ holds the truth at a median 21% of the samples of the paper's experiments. The e
 model (:mod:`.vcm_fit`) is a proper Bayesian posterior of the same coefficients on the
 integral form of the data, with adaptive smoothness, whose noise level is estimated
 from the data themselves. Its 95% interval, and those of every structure that explains
-the data as well (within a Bayes factor of 20), make the band's core
+the data as well (within a Bayes factor of 20) and of the structure search's other
+optimum where its climbs from two starts ended apart, make the band's core
 (:class:`Assessment`: ``lower``/``upper``); :meth:`DynamicSINDy.coefficients` widens it
 to hold the generator's mean and spread too.
 """
@@ -37,8 +38,9 @@ class Assessment:
     mean, sd : ndarray (n_times, n_states, n_features)
         Posterior mean and standard deviation on the fitted structure (0 off support).
     lower, upper : ndarray (n_times, n_states, n_features)
-        Union of the 95% intervals of the fitted structure and of every structure that
-        explains the data as well (a term absent from one of them: 0 is inside).
+        Union of the 95% intervals of the fitted structure, of every structure that
+        explains the data as well and of the search's other optimum, if any (a term
+        absent from one of them: 0 is inside).
     doubts : tuple of str
     """
 
@@ -86,13 +88,16 @@ def assess(exact, support, varying, choices, generator_mean, threshold, states, 
             doubts.append(f"d{state}/dt: {_describe(rival, fit, features)} explains the data "
                           f"as well (Bayes factor under 20): the structure is uncertain")
         for other in (choice.apart if choice is not None else ()):
+            if (other.support, other.varying) == (fit.support, fit.varying):
+                continue  # the fitted structure is that end itself
             om, os_ = _posterior(other, basis, n_times, len(features))
             lower[:, i] = np.minimum(lower[:, i], (om - BAND * os_) * scale[i])
             upper[:, i] = np.maximum(upper[:, i], (om + BAND * os_) * scale[i])
             gap = penalised(fit) - penalised(other)
             doubts.append(f"d{state}/dt: the structure search from another start ended at "
-                          f"{_describe(other, fit, features)} (log Bayes factor {gap:.0f} "
-                          "below): the evidence has two optima, the structure is uncertain")
+                          f"{_describe(other, fit, features)} (log Bayes factor "
+                          f"{abs(gap):.0f} {'below' if gap >= 0 else 'above'}): the evidence "
+                          "has two optima, the structure is uncertain")
         if choice is not None and (choice.fit.support, choice.fit.varying) != (
                 fit.support, fit.varying):
             gap = penalised(choice.fit) - penalised(fit)

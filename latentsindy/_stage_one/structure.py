@@ -195,8 +195,9 @@ class StructureSearch:
         sigma (the paper's case, seeds 1 and 2) went from the better start (x constant,
         y and z varying) to a wrong local optimum, below where the Gaussian best's
         climb ends (the truth). Both climbs, the better end taken; the Gaussian best's
-        climb runs first, on the cache as it was, so where it wins the search is the
-        same, fit for fit.
+        climb runs first, on the cache as it was, and where no other optimum starts
+        higher the fits made to rank them leave the cache: there the search is the
+        same as a single climb, fit for fit.
 
         Returns ``(fit, near, other)``: the higher end, its neighbours, and the other
         end where the two climbs ended at different structures (else None)."""

@@ -59,6 +59,8 @@ def test_every_step_side_by_side_gives_the_loops_search(monkeypatch):
             b.fit.support, b.fit.varying, b.fit.score, b.searched)
         assert [(r.support, r.varying, r.score) for r in a.rivals] == [
             (r.support, r.varying, r.score) for r in b.rivals]
+        assert [(r.support, r.varying, r.score) for r in a.apart] == [
+            (r.support, r.varying, r.score) for r in b.apart]
         np.testing.assert_array_equal(a.fit.spline_cov, b.fit.spline_cov)
         np.testing.assert_array_equal(a.fit.edf, b.fit.edf)
     for a, b in zip(both_caches, alone_caches, strict=True):
