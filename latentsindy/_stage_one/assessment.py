@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._core.timing import timed
-from .structure import LOG_PRIOR_ODDS, EquationChoice, penalised
+from .structure import LOG_PRIOR_ODDS, EquationChoice, penalised, same_structure
 
 BAND = 2.0  # standard deviations: a 95% interval
 AGREE = 0.9  # R^2 of the generator's varying coefficient against the exact model's
@@ -81,25 +81,24 @@ def assess(exact, support, varying, choices, generator_mean, threshold, states, 
         mean[:, i], sd[:, i] = m * scale[i], s * scale[i]
         lower[:, i], upper[:, i] = (m - BAND * s) * scale[i], (m + BAND * s) * scale[i]
         choice = choices[i] if choices is not None else None
-        for rival in (choice.rivals if choice is not None else ()):
-            rm, rs = _posterior(rival, basis, n_times, len(features))
-            lower[:, i] = np.minimum(lower[:, i], (rm - BAND * rs) * scale[i])
-            upper[:, i] = np.maximum(upper[:, i], (rm + BAND * rs) * scale[i])
-            doubts.append(f"d{state}/dt: {_describe(rival, fit, features)} explains the data "
-                          f"as well (Bayes factor under 20): the structure is uncertain")
-        for other in (choice.apart if choice is not None else ()):
-            if (other.support, other.varying) == (fit.support, fit.varying):
-                continue  # the fitted structure is that end itself
-            om, os_ = _posterior(other, basis, n_times, len(features))
+        rivals = choice.rivals if choice is not None else ()
+        # the search's other optimum, unless the fitted structure is that end itself
+        apart = tuple(o for o in (choice.apart if choice is not None else ())
+                      if not same_structure(o, fit))
+        for structure in (*rivals, *apart):  # the band holds each one's interval too
+            om, os_ = _posterior(structure, basis, n_times, len(features))
             lower[:, i] = np.minimum(lower[:, i], (om - BAND * os_) * scale[i])
             upper[:, i] = np.maximum(upper[:, i], (om + BAND * os_) * scale[i])
+        for rival in rivals:
+            doubts.append(f"d{state}/dt: {_describe(rival, fit, features)} explains the data "
+                          f"as well (Bayes factor under 20): the structure is uncertain")
+        for other in apart:
             gap = penalised(fit) - penalised(other)
             doubts.append(f"d{state}/dt: the structure search from another start ended at "
                           f"{_describe(other, fit, features)} (log Bayes factor "
                           f"{abs(gap):.0f} {'below' if gap >= 0 else 'above'}): the evidence "
                           "has two optima, the structure is uncertain")
-        if choice is not None and (choice.fit.support, choice.fit.varying) != (
-                fit.support, fit.varying):
+        if choice is not None and not same_structure(choice.fit, fit):
             gap = penalised(choice.fit) - penalised(fit)
             if gap > LOG_PRIOR_ODDS:
                 doubts.append(f"d{state}/dt: the exact model prefers "

@@ -148,7 +148,7 @@ class StructureSearch:
     def _is_rival(self, other, fit, proposed):
         """A neighbour that scores within the price, and does not merely add a
         constant the variation could carry (see :meth:`earned`)."""
-        if (other.support, other.varying) == (fit.support, fit.varying):
+        if same_structure(other, fit):
             return False
         if penalised(other) <= penalised(fit) - LOG_PRIOR_ODDS:
             return False
@@ -207,7 +207,7 @@ class StructureSearch:
         ends = [self.climb(chosen, True)]
         others = []
         for f in found:
-            if not any(_same(f, o) for o in [best, *others]):
+            if not any(same_structure(f, o) for o in [best, *others]):
                 others.append(f)
         if not others:
             return (*ends[0], None)
@@ -219,7 +219,7 @@ class StructureSearch:
             return (*ends[0], None)
         ends.append(self.climb(rival, True))
         (fit, near), (other, _) = sorted(ends, key=lambda end: -penalised(end[0]))
-        return fit, near, None if _same(other, fit) else other
+        return fit, near, None if same_structure(other, fit) else other
 
     def run(self, starts, proposed=()) -> EquationChoice:
         """Search from every (support, varying) in ``starts``, Gaussian then adaptive;
@@ -237,12 +237,12 @@ class StructureSearch:
                                   for s, v in self.neighbours(reduced)]
         rivals = tuple(f for f in near if self._is_rival(f, fit, proposed))
         # the other climb's end, unless it is the choice or among its rivals already
-        apart = () if other is None or any(_same(other, f) for f in (fit, *rivals)) else (
-            other,)
+        apart = () if other is None or any(same_structure(other, f)
+                                           for f in (fit, *rivals)) else (other,)
         return EquationChoice(fit, rivals, len(self.model._cache), apart)
 
 
-def _same(a, b) -> bool:
+def same_structure(a, b) -> bool:
     """Whether two fits have the same structure (support and varying terms)."""
     return (a.support, a.varying) == (b.support, b.varying)
 
