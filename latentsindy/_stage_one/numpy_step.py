@@ -13,7 +13,10 @@ itself stays a torch module (pruning, the decisions between phases, sampling and
 saving use it as before).
 
 The convolutions run as matrix products over unrolled windows; the exact GELU's error
-function is torch's (vectorised), on the same memory.
+function is torch's (vectorised), on the same memory. On a uniform grid with at least
+two samples per knot interval the loss is evaluated on the decoder's knots
+(:mod:`.knot_loss`: the same loss, without reading the series at every sample);
+elsewhere on the samples.
 """
 
 from __future__ import annotations
@@ -26,7 +29,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..generators._knots import applies
 from ..generators.timevae import _BASE, TimeVAE
+from .knot_loss import KnotLoss
 
 _INV_SQRT2 = np.float32(1.0 / math.sqrt(2.0))
 _INV_SQRT_2PI = np.float32(1.0 / math.sqrt(2.0 * math.pi))
@@ -186,7 +191,14 @@ class NumpyStep:
                 length *= 2  # each follows an upsampling by two
                 self.ups.append(_Conv(layer, length))
         self.n_times = self.theta.shape[1]
-        self.interp, self.interp_t = _interpolation(gen, length, self.n_times)
+        uniform = gen.positions is None or len(gen.positions) != self.n_times
+        # the loss on the knots where it is the samples' loss (knot_loss.py); else on
+        # the samples, read from the knots by a sparse interpolation
+        self.on_knots = (KnotLoss(self.theta, self.xdot, self.weights, length)
+                         if applies(self.n_times, length, uniform) else None)
+        self.interp = self.interp_t = None
+        if self.on_knots is None:
+            self.interp, self.interp_t = _interpolation(gen, length, self.n_times)
         self.spacing = None
         if gen.spacing is not None:
             h = (gen.spacing / gen.spacing.mean()).clamp_min(1e-3).numpy().astype(np.float32)
@@ -275,13 +287,18 @@ class NumpyStep:
             parts.append(slope)
         wc, bc, _, _ = self.linears["to_coefficients"]
         knots = wc[:, :, 0] @ h[0] + bc[:, None]  # (n_outputs, n_knots)
+        if self.on_knots is not None:
+            return knots.T, (parts, h[0])  # (n_knots, n_outputs)
         series = np.asarray(self.interp @ knots.T)  # (T, n_outputs)
         return series, (parts, h[0])
 
     def _decode_backward(self, grad_series, decoder_parts):
         parts, last = decoder_parts
         wc, _, gwc, gbc = self.linears["to_coefficients"]
-        grad_knots = np.asarray(self.interp_t @ grad_series).T  # (n_outputs, n_knots)
+        if self.on_knots is not None:
+            grad_knots = np.ascontiguousarray(grad_series.T)  # (n_outputs, n_knots)
+        else:
+            grad_knots = np.asarray(self.interp_t @ grad_series).T
         gwc[:, :, 0] = grad_knots @ last.T
         gbc[...] = grad_knots.sum(axis=1)
         grad_h = (wc[:, :, 0].T @ grad_knots)[None]
@@ -304,21 +321,27 @@ class NumpyStep:
         pinned = model.pin_mask.numpy()
         const = np.where(pinned, model.pin_value.numpy(), self.constants)
         mask = support * varying
-        # (T, n, F), in the model's order of operations: the roughness's second
-        # differences cancel, so a different rounding here shows there
+        # (T, n, F) on the samples, in the model's order of operations (the roughness's
+        # second differences cancel, so a different rounding here shows there)
         xi = support * (const + varying * series.reshape(-1, n_states, n_features))
-        pred = np.einsum("btf,tnf->btn", self.theta, xi)
-        resid = pred - self.xdot
-        wr = self.weights * resid
-        mse = float(np.mean(wr * resid))
-        grad_pred = wr * np.float32(2.0 / resid.size)
-        grad_xi = np.einsum("btn,btf->tnf", grad_pred, self.theta)
+        if self.on_knots is not None:  # xi (n_knots, n, F): the knots' values
+            mse, grad_xi = self.on_knots.misfit(xi)
+            size, sign = self.on_knots.magnitude(xi)
+            size = size * support
+            rough_raw, grad_rough = self.on_knots.roughness(xi, self.tv_share)
+        else:  # xi (T, n, F): the samples'
+            pred = np.einsum("btf,tnf->btn", self.theta, xi)
+            resid = pred - self.xdot
+            wr = self.weights * resid
+            mse = float(np.mean(wr * resid))
+            grad_pred = wr * np.float32(2.0 / resid.size)
+            grad_xi = np.einsum("btn,btf->tnf", grad_pred, self.theta)
+            sign = np.sign(xi)
+            size = _time_mean(np.abs(xi)) * support
+            rough_raw, grad_rough = self._roughness(xi)
 
-        n_times = xi.shape[0]
+        n_times = self.n_times
         n_active = max(float(support.sum()), 1.0)
-        sign = np.sign(xi)
-        size = _time_mean(np.abs(xi)) * support
-        rough_raw, grad_rough = self._roughness(xi)
         mean_abs = float(size.sum()) / n_active
         rough_norm = 1.0 / (n_active * max(mean_abs, self.threshold))
         rough = float((rough_raw * support).sum()) * rough_norm
@@ -331,8 +354,9 @@ class NumpyStep:
         grad_size = (l1_weight * self.free[:, None] / (1.0 + size / self.threshold)) * support
         grad_xi += sign * (grad_size / n_times).astype(np.float32)
         grad_xi += grad_rough * (np.float32(c_rough) * support)
-        grad_series = (grad_xi * mask).reshape(n_times, -1)
-        grad_const = np.where(pinned, 0.0, _time_mean(grad_xi) * (n_times * support))
+        grad_series = (grad_xi * mask).reshape(xi.shape[0], -1)
+        # sum_t dL/dxi_t, which on the knots is their sum (each sample's weights sum to 1)
+        grad_const = np.where(pinned, 0.0, _time_mean(grad_xi) * (xi.shape[0] * support))
         terms = {"mse": mse, "l1": l1, "rough": rough, "rough_bayes": rough_bayes}
         return terms, grad_series, grad_const
 

@@ -1,0 +1,180 @@
+"""The training loss on the decoder's knots: the numpy step's misfit and roughness.
+
+timeVAE draws each coefficient as a piecewise-linear function through ``n_knots``
+equally spaced knots, read at the sample times. On a uniform grid with at least two
+samples per knot interval, every term of the loss is a function of the knots that can
+be evaluated without reading the function at each sample:
+
+* the weighted squared misfit ``sum_t w_t (theta_t . xi_t - xdot_t)^2`` is a quadratic
+  form in the knots whose matrix is block-tridiagonal (each sample reads two adjacent
+  knots), built once in float64; its value and gradient cost a few products of the
+  knots' size instead of the samples', and are exact where the samples' float32 sums
+  round;
+* the roughness's differences of consecutive samples are fixed combinations of the
+  knots' differences: a sample step inside a knot interval is a fixed share of that
+  interval's difference (all steps of an interval share its sign), one across a knot is
+  a mix of two; a second difference is zero in exact arithmetic unless its three
+  samples straddle a knot. Evaluated on the samples in float32, those zeros come out as
+  rounding noise whose signs (the gradient of ``|.|``) are random (on prey-only LV 1490
+  of 1998 are zeros, about 890 of them came out non-zero). Here the structural zeros
+  are exactly zero, as :func:`.training.roughness` makes them with ``rows``;
+* the mean magnitude ``mean_t |xi_t|`` is summed per knot interval over its samples
+  (a padded table of their interpolation weights), exactly.
+
+The values equal :func:`.training.loss_terms`' (the same definitions, not an
+approximation); a test holds the gradients to autograd's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sparse
+
+from ..generators._knots import curve_rows, knot_grid, step_pairs
+
+_CHUNK = 8192  # samples per block when the misfit's matrix is built
+
+
+class KnotLoss:
+    """The misfit, roughness and magnitude terms of the loss from the knots' values.
+
+    Parameters
+    ----------
+    theta : (B, T, F) float32 array, xdot, weights : (B, T, n) float32 arrays
+    n_knots : int
+    """
+
+    def __init__(self, theta, xdot, weights, n_knots):
+        n_traj, n_times, n_features = theta.shape
+        n_states = xdot.shape[-1]
+        left, frac = knot_grid(n_times, n_knots)
+        self.n_times, self.n_knots = n_times, n_knots
+        self.count = n_traj * n_times * n_states  # the misfit is a mean over these
+        self._misfit_matrix(theta, xdot, weights, left, frac, n_knots)
+        self._differences(left, frac, n_knots)
+        # the samples of each interval, padded: their weights on the interval's right knot
+        counts = np.bincount(left, minlength=n_knots - 1)
+        width = int(counts.max())
+        self.share = np.zeros((width, n_knots - 1), np.float32)
+        self.valid = np.zeros((width, n_knots - 1), np.float32)
+        slot = np.arange(n_times) - np.concatenate([[0], np.cumsum(counts)])[left]
+        self.share[slot, left] = frac
+        self.valid[slot, left] = 1.0
+
+    def _misfit_matrix(self, theta, xdot, weights, left, frac, n_knots):
+        """The misfit as ``x' G x - 2 c' x + base`` in the knots' values ``x`` (K, n, F)
+        flattened: ``G`` sparse (block-tridiagonal), ``c`` and ``base``, in float64."""
+        n_features, n_states = theta.shape[-1], xdot.shape[-1]
+        n_ff = n_features * n_features
+        diag = np.zeros((n_knots, n_states, n_ff))
+        upper = np.zeros((n_knots, n_states, n_ff))
+        cross = np.zeros((n_knots, n_states, n_features))
+        base = 0.0
+        for b in range(theta.shape[0]):
+            for lo in range(0, theta.shape[1], _CHUNK):
+                hi = min(lo + _CHUNK, theta.shape[1])
+                th = theta[b, lo:hi].astype(np.float64)
+                w = weights[b, lo:hi].astype(np.float64)
+                y = xdot[b, lo:hi].astype(np.float64)
+                at, f = left[lo:hi], frac[lo:hi]
+                outer = (th[:, :, None] * th[:, None, :]).reshape(len(th), -1)
+                for i in range(n_states):
+                    wo = outer * w[:, i, None]
+                    _add_rows(diag[:, i], at, wo * ((1 - f) ** 2)[:, None])
+                    _add_rows(diag[:, i], at + 1, wo * (f**2)[:, None])
+                    _add_rows(upper[:, i], at, wo * ((1 - f) * f)[:, None])
+                    wy = th * (w[:, i] * y[:, i])[:, None]
+                    _add_rows(cross[:, i], at, wy * (1 - f)[:, None])
+                    _add_rows(cross[:, i], at + 1, wy * f[:, None])
+                base += float(np.sum(w * y * y))
+        # entry (k, i, f) x (k', i, g) of G, for k' = k (diag) and k' = k + 1 (upper)
+        k, i, f, g = np.meshgrid(np.arange(n_knots), np.arange(n_states),
+                                 np.arange(n_features), np.arange(n_features), indexing="ij")
+        row = (k * n_states + i) * n_features + f
+        col = (k * n_states + i) * n_features + g
+        step = n_states * n_features  # the next knot's block
+        upper_rows, upper_cols = row[:-1].ravel(), col[:-1].ravel() + step
+        values = np.concatenate([diag.ravel(), upper[:-1].ravel(), upper[:-1].ravel()])
+        rows = np.concatenate([row.ravel(), upper_rows, upper_cols])
+        cols = np.concatenate([col.ravel(), upper_cols, upper_rows])
+        size = n_knots * step
+        self.gram = sparse.csr_matrix((values, (rows, cols)), shape=(size, size))
+        self.cross, self.base = cross.ravel(), base
+
+    def _differences(self, left, frac, n_knots):
+        """The samples' steps and second differences as combinations of the knots'
+        differences ``d_k`` (``generators._knots``): the steps inside interval k add
+        up to ``inside[k] |d_k|`` (one sign); the step across knot k (one at most) is
+        ``u d_{k-1} + v d_k``; each second difference that can bend mixes the same
+        two, ``a d_{k-1} + b d_k``, laid out as (rows per knot, K - 2)."""
+        c1, w1, c2, w2 = step_pairs(left, frac)
+        across = w2 != 0
+        self.inside64 = np.bincount(c1[~across], weights=w1[~across], minlength=n_knots - 1)
+        self.inside = self.inside64.astype(np.float32)
+        self.u = np.zeros(n_knots - 2, np.float32)  # at knots 1 .. K - 2
+        self.v = np.zeros(n_knots - 2, np.float32)
+        self.u[c2[across] - 1], self.v[c2[across] - 1] = w1[across], w2[across]
+        _, k, a, b = curve_rows(left, frac, n_knots)
+        per_knot = np.bincount(k - 1, minlength=n_knots - 2)
+        slot = np.arange(len(k)) - np.concatenate([[0], np.cumsum(per_knot)])[k - 1]
+        self.a = np.zeros((max(int(per_knot.max(initial=0)), 1), n_knots - 2), np.float32)
+        self.b = np.zeros_like(self.a)
+        self.a[slot, k - 1], self.b[slot, k - 1] = a, b
+
+    def misfit(self, xi):
+        """Mean weighted squared misfit and its gradient by ``xi`` (K, n, F) float32."""
+        x = xi.astype(np.float64).ravel()
+        g = self.gram @ x - self.cross  # G x - c
+        total = float(x @ g) - float(self.cross @ x) + self.base  # x'Gx - 2c'x + base
+        grad = ((2.0 / self.count) * g).astype(np.float32).reshape(xi.shape)
+        return total / self.count, grad
+
+    def roughness(self, xi, tv_share):
+        """:func:`.training.roughness` of the samples per term (n, F), from the knots'
+        values ``xi`` (K, n, F), and its gradient by them."""
+        n_times = self.n_times
+        flat = np.ascontiguousarray(xi.reshape(xi.shape[0], -1).T)  # (nF, K): time last
+        diff = flat[:, 1:] - flat[:, :-1]  # (nF, K - 1)
+        before, after = diff[:, :-1], diff[:, 1:]  # d_{k-1}, d_k at knots 1 .. K - 2
+        curve = self.a[:, None] * before + self.b[:, None] * after  # (rows per knot, nF, K - 2)
+        across = self.u * before + self.v * after
+        c2 = 0.5 / (n_times - 2)
+        c1 = tv_share / (n_times - 1)
+        second = np.abs(curve).sum(axis=(0, 2), dtype=np.float64)
+        first = np.abs(diff) @ self.inside64 + np.abs(across).sum(axis=1, dtype=np.float64)
+        value = (c2 * second + c1 * first).astype(np.float32)
+        s_curve, s_across = np.sign(curve), np.sign(across)
+        g_diff = np.float32(c1) * self.inside * np.sign(diff)
+        g_diff[:, :-1] += (np.float32(c2) * (self.a[:, None] * s_curve).sum(axis=0)
+                           + np.float32(c1) * self.u * s_across)
+        g_diff[:, 1:] += (np.float32(c2) * (self.b[:, None] * s_curve).sum(axis=0)
+                          + np.float32(c1) * self.v * s_across)
+        grad = np.empty_like(flat)
+        grad[:, 0] = -g_diff[:, 0]
+        grad[:, 1:-1] = g_diff[:, :-1] - g_diff[:, 1:]
+        grad[:, -1] = g_diff[:, -1]
+        return value.reshape(xi.shape[1:]), grad.T.reshape(xi.shape)
+
+    def magnitude(self, xi):
+        """``mean_t |xi_t|`` per term (n, F), and the gradient of ``sum_t |xi_t|`` by
+        the knots (K, n, F)."""
+        flat = np.ascontiguousarray(xi.reshape(xi.shape[0], -1).T)  # (nF, K)
+        lo, hi = flat[:, None, :-1], flat[:, None, 1:]
+        values = lo + self.share * (hi - lo)  # (nF, width, K - 1): each interval's samples
+        sign = np.sign(values)
+        sign *= self.valid
+        total = (values * sign).reshape(flat.shape[0], -1).sum(axis=1, dtype=np.float64)
+        size = (total / self.n_times).astype(np.float32)
+        on_right = (sign * self.share).sum(axis=1)  # (nF, K - 1)
+        on_left = sign.sum(axis=1) - on_right
+        grad = np.empty_like(flat)
+        grad[:, 0] = on_left[:, 0]
+        grad[:, 1:-1] = on_left[:, 1:] + on_right[:, :-1]
+        grad[:, -1] = on_right[:, -1]
+        return size.reshape(xi.shape[1:]), grad.T.reshape(xi.shape)
+
+
+def _add_rows(target, rows, values):
+    """``target[rows] += values`` with repeated rows summed (in order)."""
+    for j in range(values.shape[1]):
+        target[:, j] += np.bincount(rows, weights=values[:, j], minlength=target.shape[0])
