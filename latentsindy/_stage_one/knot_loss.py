@@ -1,28 +1,28 @@
-"""The training loss on the decoder's knots: the numpy step's misfit and roughness.
+"""The training loss on the decoder's knots: the numpy step's misfit, roughness and
+magnitude.
 
 timeVAE draws each coefficient as a piecewise-linear function through ``n_knots``
 equally spaced knots, read at the sample times. On a uniform grid with at least two
-samples per knot interval, every term of the loss is a function of the knots that can
-be evaluated without reading the function at each sample:
+samples per knot interval every term of the loss is a fixed function of the knots:
 
 * the weighted squared misfit ``sum_t w_t (theta_t . xi_t - xdot_t)^2`` is a quadratic
   form in the knots whose matrix is block-tridiagonal (each sample reads two adjacent
   knots), built once in float64; its value and gradient cost a few products of the
-  knots' size instead of the samples', and are exact where the samples' float32 sums
-  round;
+  knots' size instead of the samples'. With a wide library (``K F > 2 T``) the form
+  costs more than the samples, and the misfit is read at the samples instead;
 * the roughness's differences of consecutive samples are fixed combinations of the
   knots' differences: a sample step inside a knot interval is a fixed share of that
   interval's difference (all steps of an interval share its sign), one across a knot is
   a mix of two; a second difference is zero in exact arithmetic unless its three
-  samples straddle a knot. Evaluated on the samples in float32, those zeros come out as
-  rounding noise whose signs (the gradient of ``|.|``) are random (on prey-only LV 1490
-  of 1998 are zeros, about 890 of them came out non-zero). Here the structural zeros
-  are exactly zero, as :func:`.training.roughness` makes them with ``rows``;
+  samples straddle a knot, and only those are evaluated (on the samples in float32 the
+  others are rounding noise; their gradient, a second difference itself, cancels in the
+  knots' gradient up to rounding, so leaving them out changes the rounding only);
 * the mean magnitude ``mean_t |xi_t|`` is summed per knot interval over its samples
-  (a padded table of their interpolation weights), exactly.
+  (a padded table of their interpolation weights).
 
-The values equal :func:`.training.loss_terms`' (the same definitions, not an
-approximation); a test holds the gradients to autograd's.
+The values are :func:`.training.loss_terms`' (the same definitions, not an
+approximation): tests hold each term and its gradient to the samples' formulas in
+float64, and the numpy step's gradients to autograd's.
 """
 
 from __future__ import annotations
@@ -50,7 +50,20 @@ class KnotLoss:
         left, frac = knot_grid(n_times, n_knots)
         self.n_times, self.n_knots = n_times, n_knots
         self.count = n_traj * n_times * n_states  # the misfit is a mean over these
-        self._misfit_matrix(theta, xdot, weights, left, frac, n_knots)
+        # the quadratic form costs about K F^2 per equation, the samples' misfit T F:
+        # with a wide library (K F > 2 T: measured at 2000 samples, 21 terms took 2.4 ms a
+        # step against 0.43) the misfit reads the series at the samples instead
+        self.on_samples = n_knots * n_features > 2 * n_times
+        if self.on_samples:
+            self.theta, self.xdot, self.weights = theta, xdot, weights
+            self.left, self.frac = left, frac.astype(np.float32)[:, None]
+            weights_t = np.stack([1.0 - frac, frac], axis=1).ravel()
+            cols = np.repeat(np.arange(n_times), 2)
+            rows = np.stack([left, left + 1], axis=1).ravel()
+            self.to_knots = sparse.csr_matrix((weights_t, (rows, cols)),
+                                              shape=(n_knots, n_times), dtype=np.float32)
+        else:
+            self._misfit_matrix(theta, xdot, weights, left, frac, n_knots)
         self._differences(left, frac, n_knots)
         # the samples of each interval, padded: their weights on the interval's right knot
         counts = np.bincount(left, minlength=n_knots - 1)
@@ -123,11 +136,27 @@ class KnotLoss:
 
     def misfit(self, xi):
         """Mean weighted squared misfit and its gradient by ``xi`` (K, n, F) float32."""
+        if self.on_samples:
+            return self._misfit_on_samples(xi)
         x = xi.astype(np.float64).ravel()
         g = self.gram @ x - self.cross  # G x - c
         total = float(x @ g) - float(self.cross @ x) + self.base  # x'Gx - 2c'x + base
         grad = ((2.0 / self.count) * g).astype(np.float32).reshape(xi.shape)
-        return total / self.count, grad
+        return max(total, 0.0) / self.count, grad  # (an exact fit can round below 0)
+
+    def _misfit_on_samples(self, xi):
+        """The misfit read at the samples (a wide library), its gradient summed back
+        onto the knots interval by interval."""
+        flat = xi.reshape(xi.shape[0], -1)
+        lo, hi = flat[self.left], flat[self.left + 1]
+        on = lo + self.frac * (hi - lo)  # (T, nF)
+        xi_t = on.reshape(-1, *xi.shape[1:])
+        resid = np.einsum("btf,tnf->btn", self.theta, xi_t) - self.xdot
+        wr = self.weights * resid
+        mse = float(np.mean(wr * resid))
+        g = np.einsum("btn,btf->tnf", wr * np.float32(2.0 / resid.size), self.theta)
+        grad = np.asarray(self.to_knots @ g.reshape(g.shape[0], -1))
+        return mse, grad.reshape(xi.shape)
 
     def roughness(self, xi, tv_share):
         """:func:`.training.roughness` of the samples per term (n, F), from the knots'
@@ -175,6 +204,6 @@ class KnotLoss:
 
 
 def _add_rows(target, rows, values):
-    """``target[rows] += values`` with repeated rows summed (in order)."""
-    for j in range(values.shape[1]):
-        target[:, j] += np.bincount(rows, weights=values[:, j], minlength=target.shape[0])
+    """``target[rows] += values`` with repeated rows summed, ``rows`` sorted."""
+    starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+    target[rows[starts]] += np.add.reduceat(values, starts, axis=0)

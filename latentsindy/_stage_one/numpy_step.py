@@ -15,8 +15,8 @@ saving use it as before).
 The convolutions run as matrix products over unrolled windows; the exact GELU's error
 function is torch's (vectorised), on the same memory. On a uniform grid with at least
 two samples per knot interval the loss is evaluated on the decoder's knots
-(:mod:`.knot_loss`: the same loss, without reading the series at every sample);
-elsewhere on the samples.
+(:mod:`.knot_loss`: the same loss, its misfit and roughness without reading the series
+at every sample); elsewhere on the samples.
 """
 
 from __future__ import annotations
@@ -191,7 +191,7 @@ class NumpyStep:
                 length *= 2  # each follows an upsampling by two
                 self.ups.append(_Conv(layer, length))
         self.n_times = self.theta.shape[1]
-        uniform = gen.positions is None or len(gen.positions) != self.n_times
+        uniform = gen.positions is None or len(gen.positions) != self.n_times  # no spacing
         # the loss on the knots where it is the samples' loss (knot_loss.py); else on
         # the samples, read from the knots by a sparse interpolation
         self.on_knots = (KnotLoss(self.theta, self.xdot, self.weights, length)
@@ -321,8 +321,8 @@ class NumpyStep:
         pinned = model.pin_mask.numpy()
         const = np.where(pinned, model.pin_value.numpy(), self.constants)
         mask = support * varying
-        # (T, n, F) on the samples, in the model's order of operations (the roughness's
-        # second differences cancel, so a different rounding here shows there)
+        # (T, n, F) on the samples, (n_knots, n, F) on the knots; in the model's order of
+        # operations (the samples' second differences cancel: a different rounding shows)
         xi = support * (const + varying * series.reshape(-1, n_states, n_features))
         if self.on_knots is not None:  # xi (n_knots, n, F): the knots' values
             mse, grad_xi = self.on_knots.misfit(xi)

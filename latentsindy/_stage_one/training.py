@@ -214,8 +214,7 @@ def loss_terms(model, theta, xdot, weights, inputs, noise_var, threshold, free_r
     active = model.support.to(xi.dtype)
     n_active = active.sum().clamp_min(1.0)
     size = xi.abs().mean(dim=(0, 1)) * active  # mean |Xi| over time, per term
-    rows = model.generator.roughness_rows(xi.shape[1])
-    rough = (roughness(xi, model.generator.spacing, rows) * active).sum() / n_active
+    rough = (roughness(xi, model.generator.spacing) * active).sum() / n_active
     mean_abs = size.sum() / n_active
     # relative to the coefficients' size, but never to less than the pruning
     # threshold: a coefficient that averages about zero must still be free to vary
@@ -241,8 +240,7 @@ def total_loss(terms, l1_weight, rough_weight, kl_weight, rough_scaled):
     return terms["mse"] + kl_weight * terms["kl"] + reg
 
 
-def roughness(track: torch.Tensor, spacing: torch.Tensor | None = None,
-              rows: torch.Tensor | None = None) -> torch.Tensor:
+def roughness(track: torch.Tensor, spacing: torch.Tensor | None = None) -> torch.Tensor:
     """Smoothness penalty of both generators, per trailing entry: half the mean absolute
     second difference along time (dim 1) plus ``TV_SHARE`` of the mean absolute first
     difference (total variation).
@@ -261,21 +259,12 @@ def roughness(track: torch.Tensor, spacing: torch.Tensor | None = None,
     spacing, each weighted by the time it stands for: a prior per unit time, not per
     sample (equal spacing gives the plain differences). Total variation needs no
     change: it is the same whatever the sampling.
-
-    ``rows`` (len - 2,) bool, on equal spacing: the second differences that can be
-    non-zero (the generator's, ``roughness_rows``); the others are zero in exact
-    arithmetic (a piecewise-linear track inside its pieces) and are left out: in
-    floating point they are rounding noise, whose signs would be the gradient.
     """
     if track.shape[1] < 3:
         return track.new_zeros(track.shape[2:])
     first = track[:, 1:] - track[:, :-1]
     if spacing is None:
         second = (track[:, 2:] - 2 * track[:, 1:-1] + track[:, :-2]).abs()
-        if rows is not None:
-            second = second[:, rows]  # the mean stays over every row: the others are 0
-            return (0.5 * second.sum(dim=1).mean(dim=0) / (track.shape[1] - 2)
-                    + TV_SHARE * first.abs().mean(dim=(0, 1)))
     else:
         # steps under a thousandth of the mean count as that: two samples nearly at the
         # same time share one position in float32 (a zero step, 0/0 slopes otherwise)

@@ -49,12 +49,6 @@ class Generator(nn.Module):
         self.positions = positions
         self.spacing = None if positions is None else torch.diff(positions)
 
-    def roughness_rows(self, n_times: int) -> torch.Tensor | None:
-        """The second differences of a drawn series (``n_times`` samples) that are not
-        zero for every draw (see :func:`latentsindy._stage_one.training.roughness`), or
-        None: all of them."""
-        return None
-
     def sample(self, inputs: torch.Tensor, n_samples: int) -> tuple[torch.Tensor, torch.Tensor]:
         raise NotImplementedError
 

@@ -1,8 +1,8 @@
 """The uniform knot grid of a piecewise-linear series read at its samples (timeVAE):
 where each sample sits between two knots, and the samples' differences as fixed
 combinations of the knots' differences ``d_k = x_{k+1} - x_k`` (used by
-``_stage_one/knot_loss.py`` and by the roughness's rows, :func:`structural_rows`).
-Everything is O(samples): no (samples x knots) matrix is formed."""
+``_stage_one/knot_loss.py``). Everything is O(samples): no (samples x knots) matrix is
+formed."""
 
 from __future__ import annotations
 
@@ -66,13 +66,3 @@ def curve_rows(left, frac, n_knots):
     if np.any((k < 1) | (k > n_knots - 2)):
         raise ValueError("curve_rows: a second difference outside the interior knots.")
     return rows, k, a, b
-
-
-def structural_rows(n_times: int, n_knots: int) -> np.ndarray:
-    """The second differences of the samples (``n_times - 2``, bool) that are not zero
-    in exact arithmetic for every set of knots (where :func:`applies`): those whose
-    three samples straddle a knot."""
-    rows, _, _, _ = curve_rows(*knot_grid(n_times, n_knots), n_knots)
-    out = np.zeros(max(n_times - 2, 0), dtype=bool)
-    out[rows] = True
-    return out

@@ -27,7 +27,6 @@ import torch.nn.functional as F
 from torch import nn
 
 from ._base import Generator, gaussian_kl
-from ._knots import applies, structural_rows
 
 
 @dataclass(frozen=True)
@@ -132,19 +131,6 @@ class TimeVAE(Generator):
         frac = (where - left.to(where.dtype))[None, :, None]
         knots = knots.transpose(1, 2)
         return knots[:, left] * (1 - frac) + knots[:, left + 1] * frac
-
-    def roughness_rows(self, n_times: int) -> torch.Tensor | None:
-        """On a uniform grid with at least two samples per knot interval, the second
-        differences whose samples straddle a knot (the others are zero for every
-        draw); None elsewhere."""
-        uniform = self.positions is None or len(self.positions) != n_times
-        if not applies(n_times, self.options.n_knots, uniform):
-            return None
-        device = self.from_latent.weight.device
-        if getattr(self, "_rows", (None, None))[:2] != (n_times, device):  # made once
-            rows = structural_rows(n_times, self.options.n_knots)
-            self._rows = (n_times, device, torch.as_tensor(rows, device=device))
-        return self._rows[2]
 
     def sample(self, inputs: torch.Tensor, n_samples: int) -> tuple[torch.Tensor, torch.Tensor]:
         mu, logvar = self.encode(inputs)

@@ -53,7 +53,9 @@ def _autograd(model, data, l1_weight, rough_weight, rough_scaled, opt):
     (1, True, False, {}),
     # no upsampling layer, a series shorter than the encoder's points, another kernel
     (1, False, True, {"n_knots": 32, "kernel_size": 3}),
-    (2, True, True, {"n_knots": 128, "n_times": 90})])
+    (2, True, True, {"n_knots": 128, "n_times": 90}),
+    # a uniform grid with fewer than two samples per knot interval: the samples' loss
+    (1, False, True, {"n_knots": 256, "n_times": 300})])
 @pytest.mark.parametrize("phase", [1, 2])
 def test_loss_and_gradient_equal_autograd(n_traj, irregular, fit, shape, phase):
     """Every tensor's gradient; without the data misfit (``fit`` False: zero weights)
@@ -66,6 +68,8 @@ def test_loss_and_gradient_equal_autograd(n_traj, irregular, fit, shape, phase):
     l1_weight, rough_weight = (0.1, 0.3) if phase == 1 else (0.0, 2.0)
     terms, loss, grad = _autograd(model, data, l1_weight, rough_weight, phase == 2, opt)
     step = NumpyStep(model, *data)
+    n_times, n_knots = shape.get("n_times", 700), shape.get("n_knots", 64)
+    assert (step.on_knots is not None) == (not irregular and n_times - 1 >= 2 * (n_knots - 1))
     torch.manual_seed(3)  # the same latent noise
     opt.grad.fill_(float("nan"))  # every gradient must be written (none is zeroed)
     ours = step(l1_weight, rough_weight, 1.0, phase == 2)
