@@ -24,12 +24,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.sparse as sparse
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..generators._knots import applies
+from ..generators._knots import applies, interpolation, knot_grid
 from ..generators.timevae import _BASE, TimeVAE
 from .knot_loss import KnotLoss
 
@@ -143,16 +142,10 @@ def _upsample_backward(grad):
 def _interpolation(gen, n_knots, n_times):
     """Sparse (n_times, n_knots) matrix: the decoder's knots -> the sample times."""
     if gen.positions is None or len(gen.positions) != n_times:
-        where = np.arange(n_times, dtype=np.float64) * ((n_knots - 1) / max(n_times - 1, 1))
-    else:
-        where = gen.positions.numpy().astype(np.float64) * ((n_knots - 1) / max(n_times - 1, 1))
+        return interpolation(*knot_grid(n_times, n_knots), n_knots)
+    where = gen.positions.numpy().astype(np.float64) * ((n_knots - 1) / max(n_times - 1, 1))
     left = np.clip(np.floor(where).astype(int), 0, n_knots - 2)
-    frac = (where - left).astype(np.float32)
-    rows = np.repeat(np.arange(n_times), 2)
-    cols = np.stack([left, left + 1], axis=1).ravel()
-    vals = np.stack([1 - frac, frac], axis=1).ravel()
-    matrix = sparse.csr_matrix((vals, (rows, cols)), shape=(n_times, n_knots), dtype=np.float32)
-    return matrix, matrix.T.tocsr()
+    return interpolation(left, where - left, n_knots)
 
 
 class NumpyStep:

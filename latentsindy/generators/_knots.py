@@ -7,6 +7,7 @@ formed."""
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sparse
 
 EXACT_ZERO = 1e-9  # a combination weight below this is a zero that rounded
 
@@ -17,6 +18,18 @@ def knot_grid(n_times: int, n_knots: int):
     where = np.arange(n_times, dtype=np.float64) * ((n_knots - 1) / max(n_times - 1, 1))
     left = np.clip(np.floor(where).astype(np.int64), 0, n_knots - 2)
     return left, where - left
+
+
+def interpolation(left, frac, n_knots):
+    """Sparse float32 matrices of the linear read-out: (T, K) knots -> samples, and its
+    transpose (K, T) (samples' gradients -> knots)."""
+    n_times = len(left)
+    frac = np.asarray(frac, dtype=np.float32)
+    rows = np.repeat(np.arange(n_times), 2)
+    cols = np.stack([left, left + 1], axis=1).ravel()
+    vals = np.stack([1 - frac, frac], axis=1).ravel()
+    matrix = sparse.csr_matrix((vals, (rows, cols)), shape=(n_times, n_knots), dtype=np.float32)
+    return matrix, matrix.T.tocsr()
 
 
 def applies(n_times: int, n_knots: int, uniform: bool) -> bool:
