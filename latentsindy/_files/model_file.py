@@ -27,9 +27,11 @@ from .container import write
 
 FORMAT = "latentsindy.DynamicSINDy"
 # 2: pinned constants, the structure setting, the exact model's band; 3: timeVAE's
-# encoder reads a long series averaged down to its knots (older files: every sample)
-VERSION = 3
-READABLE = (1, 2, 3)
+# encoder reads a long series averaged down to its knots (older files: every sample);
+# 4: the generator's options as built (timeVAE's knots chosen from the data; older
+# files were built from their settings, timeVAE with 256 knots unless set)
+VERSION = 4
+READABLE = (1, 2, 3, 4)
 _SETTINGS = ("generator", "generator_options", "training", "structure", "support",
              "time_varying", "seed")
 
@@ -79,6 +81,7 @@ def save_model(model: DynamicSINDy, path) -> None:
         "noise_variance": model.noise_variance_, "n_parameters": model.n_parameters_,
         "restored": [list(p) for p in m.restored], "n_trajectories": len(model.x_),
         "history": model.history_, "online": getattr(m, "track_mean", None) is not None,
+        "generator_options_used": dataclasses.asdict(model.generator_options_),
     }
     arrays = {"feature_scale": model.feature_scale_, "derivative_scale": model.derivative_scale_,
               "encoder_inputs": model.encoder_inputs_.cpu().numpy(), "times": model.times_}
@@ -113,7 +116,7 @@ def read_model(meta, arrays) -> DynamicSINDy:
     sequential = generator_class(est.generator).sequential
     torch.manual_seed(0)  # construction draws initial weights, all overwritten below
     gen = build_generator(est.generator, inputs.shape[1], support.numel(),
-                          est.generator_options)
+                          meta.get("generator_options_used", est.generator_options))
     gen.allocate(inputs.shape[2], sample_positions(arrays["times"], "cpu"))
     if meta["version"] < 3 and hasattr(gen, "encoder_points"):
         gen.encoder_points = None  # its encoder was trained on every sample
@@ -137,6 +140,7 @@ def read_model(meta, arrays) -> DynamicSINDy:
     est.support_ = support.numpy().copy()
     est.time_varying_ = weights["time_varying"].numpy().astype(bool) & est.support_
     est.n_parameters_ = int(meta["n_parameters"])
+    est.generator_options_ = gen.options
     est.restored_terms_ = [(est.state_names_[i], est.feature_names_[j]) for i, j in model.restored]
     est.history_ = meta["history"]
     est.assessment_ = None  # version 1: no exact model (band: mean +- 2 std)

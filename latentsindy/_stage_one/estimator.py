@@ -55,7 +55,9 @@ class DynamicSINDy:
         samples); ``"hypersindy"`` (dynamic HyperSINDy) reads it window by window,
         with memory independent of the series length.
     generator_options : dict, optional
-        Architecture options of the generator (e.g. ``{"latent_dim": 8}``).
+        Architecture options of the generator (e.g. ``{"latent_dim": 8}``). What they
+        leave to the data is chosen from it (timeVAE's ``n_knots``: what the
+        differentiator resolves); the options used are ``generator_options_``.
     training : TrainingOptions, SequentialTrainingOptions or dict, optional
         Loss weights, steps and pruning threshold: :class:`TrainingOptions` for
         ``"timevae"``, :class:`SequentialTrainingOptions` for ``"hypersindy"``.
@@ -87,6 +89,8 @@ class DynamicSINDy:
     ----------
     support_, time_varying_ : ndarray of bool, shape (n_states, n_features)
         Terms kept, and those of them that vary in time.
+    generator_options_ : frozen options dataclass
+        The generator's options as built, with what was left to the data filled in.
     restored_terms_ : list of (state, feature)
         Terms pruned in the sparsity phase and restored by the least-squares check.
     history_ : list of dict
@@ -198,8 +202,10 @@ class DynamicSINDy:
             adopt_structure(model, choices[-1])
 
         with _seeded(self.seed, dev):  # repeatable, and the caller's RNG state is untouched
+            # the exact model's knots are one every half differentiator window (cubic
+            # splines: three more knots than intervals): what the data resolve
             gen = build_generator(self.generator, inputs.shape[1], support.size,
-                                  self.generator_options)
+                                  self.generator_options, intervals=exact.n_knots - 3)
             support_t = torch.as_tensor(support, device=dev)
             gen.allocate(theta.shape[1], sample_positions(times[0], dev))
             if sequential:
@@ -225,6 +231,7 @@ class DynamicSINDy:
         self.support_ = model.support.cpu().numpy().copy()
         self.time_varying_ = model.time_varying.cpu().numpy().astype(bool) & self.support_
         self.n_parameters_ = sum(p.numel() for p in gen.parameters())
+        self.generator_options_ = gen.options
         self.restored_terms_ = [(names[i], feature_list[j]) for i, j in model.restored]
         with torch.no_grad():
             mean_n = model(inputs, 0)[0][0].cpu().double().numpy()

@@ -21,10 +21,16 @@ def generator_class(name: str) -> type[Generator]:
     return GENERATORS[name]
 
 
-def build_generator(name: str, n_inputs: int, n_outputs: int, options) -> Generator:
-    """Instantiate the generator ``name`` with validated options (the caller seeds torch)."""
+def build_generator(name: str, n_inputs: int, n_outputs: int, options,
+                    intervals: float | None = None) -> Generator:
+    """Instantiate the generator ``name`` with validated options (the caller seeds torch);
+    with ``intervals`` (the resolution of the data, :meth:`Generator.for_data`) what the
+    options leave to the data is chosen from it. The options used are ``.options``."""
     cls = generator_class(name)
-    return cls(n_inputs, n_outputs, make_options(cls.Options, options, name))
+    options = make_options(cls.Options, options, name)
+    if intervals is not None:
+        options = cls.for_data(options, intervals)
+    return cls(n_inputs, n_outputs, options)
 
 
 __all__ = ["Generator", "TimeVAE", "TimeVAEOptions", "HyperSINDy", "HyperSINDyOptions",

@@ -38,6 +38,13 @@ class Generator(nn.Module):
     positions: torch.Tensor | None = None  # sample times, see allocate()
     spacing: torch.Tensor | None = None
 
+    @classmethod
+    def for_data(cls, options, intervals: float):
+        """``options`` with what they leave to the data filled in, for a series whose
+        coefficients the data resolve on ``intervals`` intervals (one every half
+        differentiator window). The default leaves them as they are."""
+        return options
+
     def allocate(self, n_times: int, positions: torch.Tensor | None = None) -> None:
         """Prepare for a series of ``n_times`` samples (the estimator calls this first).
 

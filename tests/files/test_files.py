@@ -205,15 +205,53 @@ def test_model_files_before_version_3_read_every_sample(tmp_path):
 
     data = systems.harmonic_oscillator(n_times=600, noise=0.01)  # longer than 256 knots
     # the generator decides the structure: every term stays time-varying after 40 steps
+    # (256 knots set: such files were built from their settings, versions < 4)
     model = DynamicSINDy(ps.PolynomialLibrary(degree=1), structure="generator", verbose=False,
+                         generator_options={"n_knots": 256},
                          training={"support_steps": 20, "refit_steps": 20}).fit(data.x, data.t)
     model.save(tmp_path / "m.npz")
     pooled = model.coefficients(4).samples
     np.testing.assert_array_equal(load(tmp_path / "m.npz").coefficients(4).samples, pooled)
-    _rewrite(tmp_path / "m.npz", tmp_path / "v2.npz", lambda m: m.__setitem__("version", 2))
+
+    def to_version_2(meta):
+        meta["version"] = 2
+        del meta["generator_options_used"]
+
+    _rewrite(tmp_path / "m.npz", tmp_path / "v2.npz", to_version_2)
     old = load(tmp_path / "v2.npz")
     assert old.model_.generator.encoder_points is None
     model.model_.generator.encoder_points = None  # what the old code computed
     every = model.coefficients(4).samples
     assert np.abs(every - pooled).max() > 0
     np.testing.assert_array_equal(old.coefficients(4).samples, every)
+
+
+def test_model_files_keep_the_knots_chosen_from_the_data(tmp_path):
+    """A model whose timeVAE knots were chosen from the data (version 4) loads with
+    them and gives the same coefficients; a version-3 file (built from its settings:
+    256 knots when unset) loads with 256 knots, as it was trained."""
+    from latentsindy import DynamicSINDy, systems
+
+    data = systems.lotka_volterra(n_times=1000, noise=0.01)
+    short = {"support_steps": 10, "refit_steps": 10}
+    lib = ps.PolynomialLibrary(degree=2)
+    model = DynamicSINDy(lib, verbose=False, training=short).fit(data.x[:, :1], data.t)
+    assert model.generator_options_.n_knots < 256  # the noise leaves fewer resolved
+    model.save(tmp_path / "m.npz")
+    back = load(tmp_path / "m.npz")
+    assert back.generator_options_ == model.generator_options_
+    np.testing.assert_array_equal(back.coefficients(4).samples, model.coefficients(4).samples)
+
+    clean = systems.lotka_volterra(n_times=1000)
+    old = DynamicSINDy(lib, verbose=False, training=short).fit(clean.x[:, :1], clean.t)
+    assert old.generator_options_.n_knots == 256 and old.generator_options is None
+    old.save(tmp_path / "old.npz")
+
+    def to_version_3(meta):
+        meta["version"] = 3
+        del meta["generator_options_used"]
+
+    _rewrite(tmp_path / "old.npz", tmp_path / "v3.npz", to_version_3)
+    back = load(tmp_path / "v3.npz")
+    assert back.generator_options_.n_knots == 256
+    np.testing.assert_array_equal(back.coefficients(4).samples, old.coefficients(4).samples)

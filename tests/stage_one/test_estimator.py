@@ -82,6 +82,49 @@ def test_encoder_reads_long_series_at_the_decoders_resolution():
         torch.testing.assert_close(gen.encode(short), short_latent, rtol=0, atol=0)
 
 
+def test_knots_for_is_the_coarsest_grid_that_resolves_the_data():
+    """The decoder's knots: a power of two between 32 and 256 with at least as many
+    intervals as the data resolve, and no power of two below it would do."""
+    from latentsindy.generators.timevae import MAX_KNOTS, knots_for
+
+    for intervals in [0.5, 1, 30.9, 31, 31.01, 60.2, 63, 63.5, 100, 127, 128, 255, 256, 1e4]:
+        knots = knots_for(intervals)
+        assert 32 <= knots <= MAX_KNOTS and knots & (knots - 1) == 0
+        assert knots - 1 >= intervals or knots == MAX_KNOTS
+        assert knots == 32 or knots // 2 - 1 < intervals
+
+
+def test_knots_follow_what_the_differentiator_resolves():
+    """By default timeVAE's knots come from the data (one per half differentiator
+    window, rounded up to a power of two): noise-free data resolve every sample (256
+    knots); 1% noise on prey-only Lotka-Volterra resolves about 60 intervals (64
+    knots, one upsampling convolution instead of three); a set ``n_knots`` is kept.
+    The options used are on the fitted estimator and in the generator."""
+    from latentsindy._stage_one.evidence import resolution
+    from latentsindy.generators.timevae import knots_for
+
+    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000, noise=0.01)
+    x = data.x[:, :1]
+    short = {"support_steps": 4, "refit_steps": 4}
+    lib = ps.PolynomialLibrary(degree=2)
+    noisy = DynamicSINDy(lib, verbose=False, training=short).fit(x, data.t)
+    intervals = resolution(x, data.t)[0] - 3
+    assert 40 < intervals < 90
+    assert noisy.generator_options_.n_knots == knots_for(intervals) <= 128
+    gen = noisy.model_.generator
+    assert gen.options is noisy.generator_options_ and gen.encoder_points == knots_for(intervals)
+    ups = [m for m in gen.upsample if isinstance(m, torch.nn.Conv1d)]
+    assert 32 * 2 ** len(ups) == noisy.generator_options_.n_knots
+    assert noisy.coefficients(n_samples=2).mean.shape == (2000, 1, 3)
+    clean = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000)
+    fitted = DynamicSINDy(lib, verbose=False, training=short).fit(clean.x[:, :1], clean.t)
+    assert fitted.generator_options_.n_knots == 256
+    kept = DynamicSINDy(lib, verbose=False, training=short,
+                        generator_options={"n_knots": 256}).fit(x, data.t)
+    assert kept.generator_options_ == TimeVAEOptions(n_knots=256)
+    assert kept.generator_options == {"n_knots": 256}  # the setting itself is untouched
+
+
 def test_parameter_count_independent_of_length():
     counts = []
     for n_times in (1000, 8000):
