@@ -81,7 +81,7 @@ def save_model(model: DynamicSINDy, path) -> None:
         "noise_variance": model.noise_variance_, "n_parameters": model.n_parameters_,
         "restored": [list(p) for p in m.restored], "n_trajectories": len(model.x_),
         "history": model.history_, "online": getattr(m, "track_mean", None) is not None,
-        "generator_options_used": dataclasses.asdict(model.generator_options_),
+        "generator_options_used": dataclasses.asdict(m.generator.options),
     }
     arrays = {"feature_scale": model.feature_scale_, "derivative_scale": model.derivative_scale_,
               "encoder_inputs": model.encoder_inputs_.cpu().numpy(), "times": model.times_}

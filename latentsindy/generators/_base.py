@@ -8,7 +8,6 @@ constants, loss, pruning), so a new generator only has to implement :meth:`sampl
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
 
 import torch
 from torch import nn
@@ -60,8 +59,14 @@ class Generator(nn.Module):
         raise NotImplementedError
 
 
-def make_options(options_cls, given: dict[str, Any] | None, generator: str):
-    """Build a generator's frozen options; a misspelt option is an error."""
+def make_options(options_cls, given, generator: str):
+    """Build a generator's frozen options from a dict, None or the options themselves
+    (a fitted estimator's ``generator_options_``); a misspelt option is an error."""
+    if isinstance(given, options_cls):
+        return given
+    if dataclasses.is_dataclass(given) and not isinstance(given, type):
+        raise TypeError(f"generator {generator!r} takes {options_cls.__name__} or a dict as "
+                        f"options; got {type(given).__name__}.")
     given = dict(given or {})
     fields = {f.name for f in dataclasses.fields(options_cls)}
     unknown = sorted(set(given) - fields)

@@ -46,8 +46,9 @@ class TimeVAEOptions:
         Resolution of the decoded coefficients: points across the series, a power
         of two >= 32 (256 resolves a switch to 0.4% of the series). The encoder reads
         a longer series averaged down to this many points. None (default): what the
-        data resolve (:func:`knots_for`), chosen by the estimator from the series
-        (a :class:`TimeVAE` built directly with None gets ``MAX_KNOTS``).
+        data resolve (:func:`knots_for`), chosen by the estimator from the noise of the
+        states x (given derivatives do not change it: the exact model's grid is the
+        same); a :class:`TimeVAE` built directly with None gets ``MAX_KNOTS``.
     """
 
     latent_dim: int = 4
@@ -58,15 +59,17 @@ class TimeVAEOptions:
     def __post_init__(self):
         for name in ("latent_dim", "hidden", "kernel_size", "n_knots"):
             value = getattr(self, name)
-            if name == "n_knots" and value is None:
+            if name == "n_knots":
                 continue
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"TimeVAEOptions.{name} must be a positive int; got {value!r}.")
         if self.kernel_size % 2 == 0:
             raise ValueError(f"TimeVAEOptions.kernel_size must be odd; got {self.kernel_size}.")
-        if self.n_knots is not None and (self.n_knots < 32 or self.n_knots & (self.n_knots - 1)):
-            raise ValueError(f"TimeVAEOptions.n_knots must be a power of two >= 32; "
-                             f"got {self.n_knots}.")
+        k = self.n_knots
+        if k is not None and (not isinstance(k, int) or isinstance(k, bool) or k < 32
+                              or k & (k - 1)):
+            raise ValueError(f"TimeVAEOptions.n_knots must be a power of two >= 32, or None "
+                             f"(chosen from the data); got {k!r}.")
 
 
 _BASE = 32  # knots produced by the dense layer before upsampling
@@ -84,7 +87,8 @@ def knots_for(intervals: float) -> int:
     re-estimates every hidden series on that grid; knots beyond it only add
     convolution layers to every training step (prey-only Lotka-Volterra at 1% noise
     resolves about 60 intervals: 64 knots, one upsampling convolution where 256 needed
-    three). Noise-free data resolve far more and keep ``MAX_KNOTS``.
+    three). Noise-free series of about 600 samples and more resolve more than that
+    and keep ``MAX_KNOTS`` (shorter ones get fewer).
 
     >>> knots_for(60.2), knots_for(64), knots_for(5000), knots_for(3)
     (64, 128, 256, 32)

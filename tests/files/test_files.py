@@ -255,3 +255,12 @@ def test_model_files_keep_the_knots_chosen_from_the_data(tmp_path):
     back = load(tmp_path / "v3.npz")
     assert back.generator_options_.n_knots == 256
     np.testing.assert_array_equal(back.coefficients(4).samples, old.coefficients(4).samples)
+    # a version-3 file whose settings named its knots is built with them
+    set_knots = DynamicSINDy(lib, verbose=False, training=short,
+                             generator_options={"n_knots": 64}).fit(clean.x[:, :1], clean.t)
+    set_knots.save(tmp_path / "set.npz")
+    _rewrite(tmp_path / "set.npz", tmp_path / "set3.npz", to_version_3)
+    back = load(tmp_path / "set3.npz")
+    assert back.generator_options_.n_knots == 64
+    np.testing.assert_array_equal(back.coefficients(4).samples,
+                                  set_knots.coefficients(4).samples)

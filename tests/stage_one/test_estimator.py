@@ -96,10 +96,11 @@ def test_knots_for_is_the_coarsest_grid_that_resolves_the_data():
 
 def test_knots_follow_what_the_differentiator_resolves():
     """By default timeVAE's knots come from the data (one per half differentiator
-    window, rounded up to a power of two): noise-free data resolve every sample (256
-    knots); 1% noise on prey-only Lotka-Volterra resolves about 60 intervals (64
-    knots, one upsampling convolution instead of three); a set ``n_knots`` is kept.
-    The options used are on the fitted estimator and in the generator."""
+    window, rounded up to a power of two): 2000 noise-free samples resolve more than
+    256 (256 knots); 1% noise on prey-only Lotka-Volterra resolves about 60 intervals
+    (64 knots, one upsampling convolution instead of three); a set ``n_knots`` is
+    kept, and so are the options used, passed back in. The options used are on the
+    fitted estimator and in the generator."""
     from latentsindy._stage_one.evidence import resolution
     from latentsindy.generators.timevae import knots_for
 
@@ -119,20 +120,46 @@ def test_knots_follow_what_the_differentiator_resolves():
     clean = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000)
     fitted = DynamicSINDy(lib, verbose=False, training=short).fit(clean.x[:, :1], clean.t)
     assert fitted.generator_options_.n_knots == 256
+    setting = {"n_knots": 256}
     kept = DynamicSINDy(lib, verbose=False, training=short,
-                        generator_options={"n_knots": 256}).fit(x, data.t)
+                        generator_options=setting).fit(x, data.t)
     assert kept.generator_options_ == TimeVAEOptions(n_knots=256)
-    assert kept.generator_options == {"n_knots": 256}  # the setting itself is untouched
+    assert kept.get_params()["generator_options"] is setting and setting == {"n_knots": 256}
+    again = DynamicSINDy(lib, verbose=False, training=short,
+                         generator_options=noisy.generator_options_).fit(x, data.t)
+    assert again.generator_options_ == noisy.generator_options_
+    np.testing.assert_array_equal(again.coefficients(n_samples=2).mean,
+                                  noisy.coefficients(n_samples=2).mean)
 
 
-def test_parameter_count_independent_of_length():
+@pytest.mark.parametrize("value", [0, -1, 16, 48, 100, 256.0, "64", True])
+def test_knots_must_be_a_power_of_two_from_32_or_none(value):
+    with pytest.raises(ValueError, match=r"n_knots must be a power of two >= 32, or None "
+                                         r"\(chosen from the data\); got " + repr(value)):
+        TimeVAEOptions(n_knots=value)
+
+
+def test_options_of_another_generator_are_refused():
+    from latentsindy.generators import HyperSINDyOptions
+
+    data = systems.harmonic_oscillator(A=-1.0, n_times=300)
+    with pytest.raises(TypeError, match=r"generator 'timevae' takes TimeVAEOptions or a dict "
+                                        r"as options; got HyperSINDyOptions"):
+        DynamicSINDy(verbose=False, generator_options=HyperSINDyOptions()).fit(data.x, data.t)
+
+
+def test_parameter_count_bounded_whatever_the_length():
+    """Noise-free series of 1000 and 8000 samples both get the most knots (256), so
+    the same parameters; a noisy one gets fewer knots, so fewer parameters."""
     counts = []
-    for n_times in (1000, 8000):
-        data = systems.harmonic_oscillator(A=-1.0, n_times=n_times)
+    for n_times, noise in ((1000, 0.0), (8000, 0.0), (1000, 0.05)):
+        data = systems.harmonic_oscillator(A=-1.0, n_times=n_times, noise=noise)
         model = DynamicSINDy(verbose=False, training={"support_steps": 2, "refit_steps": 2})
         counts.append(model.fit(data.x, data.t).n_parameters_)
         assert model.coefficients(n_samples=2).mean.shape[0] == n_times
+        assert (model.generator_options_.n_knots == 256) == (noise == 0)
     assert counts[0] == counts[1] < 50_000
+    assert counts[2] < counts[1]
 
 
 def test_seed_makes_runs_repeatable(fast):
