@@ -87,8 +87,8 @@ def knots_for(intervals: float) -> int:
     re-estimates every hidden series on that grid; knots beyond it only add
     convolution layers to every training step (prey-only Lotka-Volterra at 1% noise
     resolves about 60 intervals: 64 knots, one upsampling convolution where 256 needed
-    three). Noise-free series of about 600 samples and more resolve more than that
-    and keep ``MAX_KNOTS`` (shorter ones get fewer).
+    three). Noise-free series of about 600 samples and more resolve more than 255
+    intervals and keep ``MAX_KNOTS`` (shorter ones get fewer).
 
     >>> knots_for(60.2), knots_for(64), knots_for(5000), knots_for(3)
     (64, 128, 256, 32)
