@@ -50,9 +50,9 @@ from _scoring import (  # noqa: E402
 
 from latentsindy import discover_hidden  # noqa: E402
 from latentsindy._core.derivatives import AdaptiveSavitzkyGolay  # noqa: E402
-from latentsindy._stage_two.closure import fit_closure  # noqa: E402
-from latentsindy._stage_two.field import ParametricSystem  # noqa: E402
-from latentsindy._stage_two.refine import Problem  # noqa: E402
+from latentsindy._stage_two.fit.field import ParametricSystem  # noqa: E402
+from latentsindy._stage_two.fit.refine import Problem  # noqa: E402
+from latentsindy._stage_two.propose.closure import fit_closure  # noqa: E402
 
 NOISE = (0.0, 0.01, 0.05, 0.1)
 

@@ -9,8 +9,8 @@ import torch
 from conftest import check_lorenz, r2
 
 from latentsindy import DynamicSINDy, discover_hidden, load, systems
-from latentsindy._stage_two.field import ParametricSystem
-from latentsindy._stage_two.refine import Problem, RefineOptions
+from latentsindy._stage_two.fit.field import ParametricSystem
+from latentsindy._stage_two.fit.refine import Problem, RefineOptions
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 

@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pysindy as ps
 
+from .._batch import COLUMNS, discover_many
 from .._core import validation as val
 from .._files.load import load
 from .._files.tables import DataError, read_columns
 from .._stage_two.discover import discover_hidden
-from .batch import COLUMNS, discover_many
 
 EXIT_USAGE = 2
 EXIT_FAILED = 1

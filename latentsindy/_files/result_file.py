@@ -14,9 +14,11 @@ import numpy as np
 import sympy as sp
 
 from .._core import saving
+from .._core.doubt import read_doubts
 from .._core.recordings import DataUse
 from .._stage_one.coefficients import CoefficientSeries
-from .._stage_two.result import Alternative, HiddenDiscovery, HiddenState, Refinement, Term
+from .._stage_two.result import HiddenDiscovery
+from .._stage_two.result_parts import Alternative, HiddenState, Refinement, Term
 from .container import Refused, write
 from .expressions import from_tree, number, to_tree
 
@@ -45,13 +47,15 @@ def save_result(result: HiddenDiscovery, path) -> None:
         "terms": [{"state": t.state, "feature": to_tree(t.feature), "value": t.value,
                    "stderr": t.stderr, "fixed": t.fixed} for t in result.terms],
         "score": result.score, "score_se": result.score_se, "notes": list(result.notes),
-        "doubts": list(result.doubts),
+        "doubts": list(result.doubts), "doubt_kinds": [d.kind for d in result.doubts],
         "alternatives": [_alternative(a) for a in result.alternatives],
         "uncertain": [_alternative(a) for a in result.uncertain],
         "refinement": None if result.refinement is None else vars(result.refinement),
         "stage_one_states": list(result.coefficients.state_names),
         "stage_one_features": list(result.coefficients.feature_names),
         "stage_one_doubts": list(result.coefficients.doubts),
+        "stage_one_doubt_kinds": [getattr(d, "kind", "unspecified")
+                                  for d in result.coefficients.doubts],
         "n_trajectories": len(result.all_times),
         "data_use": None if result.data_use is None else {
             "recordings": result.data_use.recordings, "segments": result.data_use.segments,
@@ -122,7 +126,8 @@ def read_result(meta, arrays) -> HiddenDiscovery:
         [str(f) for f in meta["stage_one_features"]], arrays["coef_support"],
         arrays["coef_time_varying"], lower=arrays.get("coef_lower"),
         upper=arrays.get("coef_upper"),
-        doubts=[str(d) for d in meta.get("stage_one_doubts", [])])
+        doubts=read_doubts(meta.get("stage_one_doubts", []),
+                           meta.get("stage_one_doubt_kinds")))
     refinement = meta["refinement"]
     return HiddenDiscovery(
         times[0], observed_series[0], hidden_series[0], arrays["hidden_std"], observed, hidden,
@@ -150,4 +155,4 @@ def _doubts(meta):
     if meta["version"] < 3:  # written before results carried their checks
         return ("saved by an older latentsindy (file version 2) that did not record the "
                 "checks on the result; rerun discover_hidden to check it",)
-    return tuple(str(s) for s in meta["doubts"])
+    return read_doubts(meta["doubts"], meta.get("doubt_kinds"))

@@ -8,29 +8,36 @@ import math
 import numpy as np
 import sympy as sp
 
+from .._core.doubt import Doubt
 from .._core.timing import timed
-from .beyond import beyond_terms
-from .checks import (
-    beyond_doubts,
-    doubts,
-    exchange_doubts,
+from .doubts.beyond import beyond_terms
+from .doubts.checks import doubts, segment_constant_doubts
+from .doubts.folded import folded_doubts, folded_score
+from .doubts.runs import free_run_doubt
+from .doubts.states import (
     first_integral_doubt,
-    free_run_doubt,
-    missing_doubts,
     observed_function_doubts,
     redundant_state_doubts,
-    segment_constant_doubts,
     unresolved_doubts,
-    weak_doubts,
 )
-from .folded import folded_doubts, folded_score
-from .judge import build, exchangeable_terms, nearly_needed_terms, weakly_supported_terms
-from .nested import monomial_name
-from .result import Alternative, HiddenDiscovery, HiddenState, Refinement, Term
+from .doubts.terms import (
+    beyond_doubts,
+    exchange_doubts,
+    exchangeable_terms,
+    missing_doubts,
+    nearly_needed_terms,
+    weak_doubts,
+    weakly_supported_terms,
+)
+from .judge import build
+from .propose.nested import monomial_name
+from .result import HiddenDiscovery
+from .result_parts import Alternative, HiddenState, Refinement, Term
 
-NOT_CHECKED = ("not refined by integration (refine=False): the structure was chosen by its "
-               "closure's held-out error and was never checked by integrating it against "
-               "the data")
+NOT_CHECKED = Doubt("not checked",
+                    "not refined by integration (refine=False): the structure was chosen by "
+                    "its closure's held-out error and was never checked by integrating it "
+                    "against the data")
 
 
 def hidden_names(system, n_observed, given, observed):
@@ -55,7 +62,7 @@ def hidden_names(system, n_observed, given, observed):
 
 def describe(system, ctx, names, pivots, nested=()):
     """HiddenState of every hidden state of ``system`` (in user names) and the renaming
-    map of symbols. ``nested``: :attr:`.hypotheses.Proposal.nested`, the hidden states
+    map of symbols. ``nested``: :attr:`.proposal.Proposal.nested`, the hidden states
     defined as a coefficient in the previous hidden state's equation."""
     n_obs = system.n_observed
     internal = system.state_names[n_obs:]

@@ -23,11 +23,13 @@ from .._core.threads import single_thread
 from .._core.timing import recording, timed
 from .._stage_one.estimator import DynamicSINDy
 from .assemble import from_proposals, from_verdicts
-from .hypotheses import Context, evaluate, propose
+from .context import NOISE_FLOOR, Context
+from .fit.refine import RefineOptions
 from .judge import judge_all
-from .refine import NOISE_FLOOR, RefineOptions
+from .propose.hypotheses import propose
+from .propose.proposal import evaluate
+from .propose.smoother import Structure
 from .result import HiddenDiscovery
-from .smoother import Structure
 
 VARIATION_SIGMAS = 3.0  # variation must exceed this many posterior std ...
 VARIATION_RELATIVE = 0.05  # ... and this fraction of the coefficient's mean size
@@ -41,8 +43,8 @@ NESTED = True
 def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_terms=None,
                     hidden_names=None, closure_library=None, generator="timevae",
                     generator_options=None, training=None, differentiation_method=None,
-                    support=None, n_samples=64, refine=True, gaps="split", max_hidden=3,
-                    device="cpu", seed=0, verbose=True) -> HiddenDiscovery:
+                    support=None, model=None, n_samples=64, refine=True, gaps="split",
+                    max_hidden=3, device="cpu", seed=0, verbose=True) -> HiddenDiscovery:
     """Infer hidden variables and a closed, autonomous ODE from partial observations.
 
     Stage one fits time-varying coefficients Xi(t) (:class:`DynamicSINDy`); a
@@ -91,6 +93,12 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         Candidates for the hidden equations (default polynomials of degree 2).
     generator, generator_options, training, differentiation_method, support
         Passed to :class:`DynamicSINDy`.
+    model : DynamicSINDy, optional
+        A configured stage one: every one of its parameters (``structure``,
+        ``time_varying`` and the ones above included) is used, and ``library`` may then
+        be left out. ``device``, ``seed`` and ``verbose`` of this call replace the
+        model's, since they govern the whole discovery. Setting both ``model`` and one
+        of the stage-one options above is an error. The model itself is not changed.
     n_samples : int
         Posterior samples of stage one's uncertainty band.
     refine : bool
@@ -121,17 +129,51 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     HiddenDiscovery
         Its ``timings`` say where the time went (wall seconds by stage).
     """
+    stage_one = _stage_one_params(model, library=library, generator=generator,
+                                  generator_options=generator_options, training=training,
+                                  differentiation_method=differentiation_method,
+                                  support=support)
     with recording() as seconds:
-        result = _discover(x_observed, library, t, feature_names, hidden_terms, hidden_names,
-                           closure_library, generator, generator_options, training,
-                           differentiation_method, support, n_samples, refine, gaps,
+        result = _discover(x_observed, t, feature_names, hidden_terms, hidden_names,
+                           closure_library, stage_one, n_samples, refine, gaps,
                            max_hidden, device, seed, verbose)
     return dataclasses.replace(result, timings=dict(seconds))
 
 
-def _discover(x_observed, library, t, feature_names, hidden_terms, hidden_names,
-              closure_library, generator, generator_options, training, differentiation_method,
-              support, n_samples, refine, gaps, max_hidden, device, seed, verbose):
+_STAGE_ONE_DEFAULTS = {"library": None, "generator": "timevae", "generator_options": None,
+                       "training": None, "differentiation_method": None, "support": None}
+
+
+def _unset(name, value, model) -> bool:
+    """Whether option ``name`` was left at its default (or, for the library, is the
+    model's own)."""
+    default = _STAGE_ONE_DEFAULTS[name]
+    if name == "library" and value is model.library:
+        return True
+    return value is default or (isinstance(default, str) and value == default)
+
+
+def _stage_one_params(model, **given) -> dict:
+    """Stage one's constructor parameters, from ``model`` or from the options given (not
+    both), without ``device``, ``seed`` and ``verbose`` (the discovery's own)."""
+    if model is None:
+        return given
+    if not isinstance(model, DynamicSINDy):
+        raise TypeError(f"model must be a DynamicSINDy (configured, not necessarily fitted); "
+                        f"got {type(model).__name__}.")
+    clash = sorted(k for k, v in given.items() if not _unset(k, v, model))
+    if clash:
+        raise ValueError(f"{clash} set both here and by model=; set stage one's options on "
+                         "the DynamicSINDy you pass (model.set_params(...)), or leave model "
+                         "out.")
+    params = model.get_params()
+    return {k: v for k, v in params.items() if k not in ("device", "seed", "verbose")}
+
+
+def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_library,
+              stage_one, n_samples, refine, gaps, max_hidden, device, seed, verbose):
+    library, support = stage_one["library"], stage_one["support"]
+    differentiation_method = stage_one["differentiation_method"]
     segments, seg_times, use = recordings.split(x_observed, t, gaps=gaps)
     # the longest segment first: stage one's coefficients (and the result's first
     # trajectory) come from it
@@ -165,10 +207,10 @@ def _discover(x_observed, library, t, feature_names, hidden_terms, hidden_names,
     for k, (x, tk) in enumerate(zip(trajs, times, strict=True)):
         if len(x) < STAGE_ONE_SHARE * len(trajs[0]):
             continue
-        model = DynamicSINDy(library, generator=generator, generator_options=generator_options,
-                             training=training, differentiation_method=differentiation_method,
-                             support=support if k == 0 else fits[0].support_,
-                             device=device, verbose=verbose, seed=seed)
+        model = DynamicSINDy(**(stage_one | {
+            "differentiation_method": differentiation_method,
+            "support": support if k == 0 else fits[0].support_}),
+            device=device, verbose=verbose, seed=seed)
         fits.append(model.fit(x, tk, feature_names=names))
         coefs.append(model.coefficients(n_samples=n_samples))
     first = coefs[0]

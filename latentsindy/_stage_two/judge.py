@@ -16,33 +16,18 @@ import numpy as np
 
 from .._core.parallel import map_on
 from . import restate
-from .field import ParametricSystem
-from .gauge import same_up_to_shift
-from .hypotheses import Context, close
-from .nested import nested_proposals
-from .refine import RefineOptions
-from .shooting import BlowUp
-from .terms import ambiguities, missing_terms, weak_terms
+from .context import NESTED_TRIGGER, TIE, Context
+from .fit.field import ParametricSystem
+from .fit.refine import RefineOptions
+from .propose.nested import nested_proposals
+from .propose.proposal import close
 from .verdict import Verdict, build, finished, first_fits, selected_and_scored, unscored
 
-__all__ = ["Verdict", "build", "judge_all", "rank", "exchangeable_terms",
-           "weakly_supported_terms", "nearly_needed_terms", "same_structure"]
+__all__ = ["Verdict", "build", "judge_all", "rank", "same_structure"]
 
 
 RATE_TRIGGER = 1.5  # best misfit (noise variances) above which rate states are tried
-# Best misfit above which a hidden state inside a hidden state's equation is tried: the
-# data missed by an order of magnitude more than their noise, which no misjudged noise
-# level explains (on Lorenz seen through x at 1% noise the best system with one hidden
-# state misses by 141-7200 noise variances; on the oscillator with one hidden growth
-# rate at 10% noise two draws missed by 1.8 and 2.1, and nested systems, more
-# flexible, won there, flagged like the systems they displaced, in up to 107 s
-# against 13-38 s).
-NESTED_TRIGGER = 10.0
 NESTED_PARENTS = 2  # single-hidden-state trials (best misfit first) nested states start from
-# Held-out scores below this (noise variances) all count as perfect: on noise-free data
-# the noise level is floored (0.1% of each state's std), scores are tiny and their
-# differences are the integrator's, not the data's; the smallest such system wins.
-TIE = 0.05
 
 
 def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
@@ -171,42 +156,6 @@ def _rate_candidates(proposals, ctx: Context, keep: int = 2) -> list:
     best = sorted(range(len(rated)), key=lambda a: rated[a].score)[:keep]
     chosen = sorted(set(range(min(keep, len(rated)))) | set(best))
     return [rated[a] for a in chosen]
-
-
-def exchangeable_terms(verdict: Verdict):
-    """Terms of the chosen system that others could replace as well
-    (:func:`.terms.ambiguities`): [(move, misfit change)]. An exchange whose refit is
-    the chosen system with a hidden state shifted by a function of the observed states
-    (:func:`.gauge.same_up_to_shift`) is the same law in another variable, not one."""
-    if not verdict.scored or verdict.candidates is None:
-        return []
-    try:
-        return ambiguities(verdict.problem, verdict.fit, verdict.candidates,
-                           same=lambda trial: same_up_to_shift(verdict.fit, trial))
-    except BlowUp:
-        return []
-
-
-def weakly_supported_terms(verdict: Verdict):
-    """Terms of the chosen system that the data support only weakly
-    (:func:`.terms.weak_terms`): [(cell, misfit change, bar)]."""
-    if not verdict.scored or verdict.candidates is None:
-        return []
-    try:
-        return weak_terms(verdict.problem, verdict.fit, verdict.candidates)
-    except BlowUp:  # not checked is a doubt, not a pass
-        return [(None, np.nan, np.nan)]
-
-
-def nearly_needed_terms(verdict: Verdict):
-    """Terms left out of the chosen system that the data nearly call for
-    (:func:`.terms.missing_terms`): [(cell, misfit change, price)]."""
-    if not verdict.scored or verdict.candidates is None:
-        return []
-    try:
-        return missing_terms(verdict.problem, verdict.fit, verdict.candidates)
-    except BlowUp:
-        return []
 
 
 def rank(verdicts):

@@ -21,14 +21,15 @@ import numpy as np
 import sympy as sp
 
 from .._core.timing import timed
-from .first_integral import integrated_proposal, integrated_system
-from .gauge import shifted_guesses, shifted_proposal, shifted_system
-from .hypotheses import Context, close
-from .nested import shifted_nested_system
-from .observed_function import function_reduced_system, reduced_proposal, reduced_system
-from .refine import Problem
-from .shooting import BlowUp
-from .smoother import HiddenFit, single_term
+from .context import Context
+from .fit.refine import Problem
+from .fit.shooting import BlowUp
+from .propose.nested import shifted_nested_system
+from .propose.proposal import close
+from .propose.smoother import HiddenFit, single_term
+from .rewrite.first_integral import integrated_proposal, integrated_system
+from .rewrite.gauge import shifted_guesses, shifted_proposal, shifted_system
+from .rewrite.observed_function import function_reduced_system, reduced_proposal, reduced_system
 from .verdict import Trial, Verdict, finish, first_fit
 
 # A winner's hidden state is restated as the coefficient of another term only where that

@@ -9,118 +9,17 @@ import numpy as np
 import sympy as sp
 
 from .._core import saving
+from .._core.doubt import as_doubts
 from .._core.recordings import DataUse
 from .._core.simulate import Simulation, integrate
 from .._core.symbolic import VectorField
 from .._stage_one.coefficients import CoefficientSeries
 from .figures import plot_discovery
+from .result_parts import HiddenComparison, Refinement
+from .summary import summary_text
 
 
-@dataclass(frozen=True)
-class HiddenState:
-    """What a hidden state is, in terms of the observed equations.
-
-    Attributes
-    ----------
-    name : str
-    terms : tuple of (equation, feature)
-        The observed-equation terms whose coefficients move with this state. The
-        state *is* the coefficient of the first one; the others read ``c + w * name``
-        in the equations (one hidden variable seen through several terms).
-    rate_of : str or None
-        Set when the state is the time derivative of another hidden state (a hidden
-        state that no coefficient shows, found because the first one's law needs it).
-    """
-
-    name: str
-    terms: tuple = ()
-    rate_of: str | None = None
-
-    def describe(self) -> str:
-        if self.rate_of is not None:
-            return f"{self.name} = d{self.rate_of}/dt"
-        (state, feature), *rest = self.terms
-        text = f"{self.name} = coefficient of {feature} in d{state}/dt"
-        if rest:
-            text += " (also moves the coefficient" + ("s" if len(rest) > 1 else "") + " of " \
-                + ", ".join(f"{f} in d{s}/dt" for s, f in rest) + ")"
-        return text
-
-
-@dataclass(frozen=True)
-class Term:
-    """One term of the closed system: ``value * feature`` in ``d state/dt``."""
-
-    state: str
-    feature: sp.Expr
-    value: float
-    stderr: float  # nan where not estimated (a definition, or refinement off)
-    fixed: bool  # part of a hidden state's definition (value 1)
-
-
-@dataclass(frozen=True)
-class Alternative:
-    """Another structure the judge considered.
-
-    ``score`` is its held-out score when ``status`` is "scored"; for "rejected" (misfit
-    far above the best), "blew up" and "does not join" (a hidden state jumps between
-    integration segments, so the fit is no trajectory of the system) it is the in-sample
-    misfit (noise variances); for "not refined" (``refine=False``) it is NaN.
-    """
-
-    description: str
-    rhs: dict
-    hidden_states: tuple
-    score: float
-    score_se: float
-    size: int
-    status: str  # "scored", "rejected", "blew up", "does not join", "not refined"
-
-
-@dataclass(frozen=True)
-class Refinement:
-    """How the closed system was fitted by integration (multiple shooting).
-
-    ``misfit_before`` / ``misfit_after``: RMS of (model - data) / std(data) over the
-    observed states, with the closure's coefficients and with the refined ones.
-    """
-
-    misfit_before: float
-    misfit_after: float
-    continuity_gap: float  # largest gap between segments, in noise units
-    n_segments: int
-    iterations: int
-    status: str
-
-
-@dataclass(frozen=True)
-class HiddenComparison:
-    """How well inferred hidden states match known ones, up to an affine map.
-
-    Attributes
-    ----------
-    r2 : ndarray, shape (n_true,)
-        R^2 of each true hidden variable predicted affinely from the inferred ones.
-    scale : ndarray, shape (n_hidden, n_true)
-    offset : ndarray, shape (n_true,)
-        The map: ``true ~ hidden @ scale + offset``.
-    observed_scale : ndarray, shape (len(observed_terms), n_true), or None
-        With ``with_observed=True``, the observed part of the map, one row per entry of
-        ``observed_terms``.
-    observed_terms : tuple of sympy expressions
-        With ``with_observed=True``, what the map may add: the observed states, then
-        the observed terms the hidden states absorb (see
-        :meth:`HiddenDiscovery.compare_hidden`); empty otherwise.
-    """
-
-    r2: np.ndarray
-    scale: np.ndarray
-    offset: np.ndarray
-    observed_scale: np.ndarray | None = None
-    observed_terms: tuple = ()
-
-
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class HiddenDiscovery:
     """Observed plus hidden states and the closed ODE that governs them.
 
@@ -193,10 +92,13 @@ class HiddenDiscovery:
     all_observed: list = field(repr=False, default_factory=list)
     all_hidden: list = field(repr=False, default_factory=list)
     hidden_initial: list = field(repr=False, default_factory=list)
-    initial_state: np.ndarray = field(repr=False, default=None)
+    initial_state: np.ndarray | None = field(repr=False, default=None)
     doubts: tuple = ()
     data_use: DataUse | None = None
     timings: dict = field(repr=False, default_factory=dict)
+
+    def __post_init__(self):
+        object.__setattr__(self, "doubts", as_doubts(self.doubts))
 
     # ----------------------------------------------------------- views
     @property
@@ -354,44 +256,25 @@ class HiddenDiscovery:
 
     def summary(self) -> str:
         """The closed system, its coefficients with standard errors, how it was fitted
-        and judged, doubts, equally good alternatives (or the runner-up) and notes."""
-        lines = [f"Closed system: {len(self.observed_names)} observed + "
-                 f"{len(self.hidden_names)} hidden state(s)"]
-        lines += [f"  hidden: {h.describe()}" for h in self.hidden_states]
-        rhs = self.rhs
-        lines += [f"  d{n}/dt = {_short(rhs[n])}" for n in self.state_names]
-        estimated = [t for t in self.terms if t.state in self.hidden_names and not t.fixed
-                     and np.isfinite(t.stderr)]
-        if estimated:
-            lines.append("  hidden-equation coefficients (value +- standard error):")
-            lines += [f"    d{t.state}/dt: {t.feature}: {t.value:.6g} +- {t.stderr:.2g}"
-                      for t in estimated]
-        if self.refinement is not None:
-            r = self.refinement
-            lines.append(f"  refined by integration: misfit {r.misfit_before:.4g} -> "
-                         f"{r.misfit_after:.4g} (RMS / std of the data), {r.n_segments} "
-                         f"segments, {r.status}")
-        if np.isfinite(self.score):
-            lines.append(f"  held-out score {self.score:.4g} +- {self.score_se:.2g} "
-                         "(noise variances; ~1: reproduces unseen data down to its noise)")
-        lines += [f"  DOUBT: {d}" for d in self.doubts]
+        and judged, doubts, equally good alternatives (or the runner-up) and notes
+        (also ``str(result)``)."""
+        return summary_text(self)
+
+    def __str__(self) -> str:
+        return self.summary()
+
+    def __repr__(self) -> str:
+        verdict = "confident" if self.confident else "not confident"
+        score = f", score {self.score:.3g}" if np.isfinite(self.score) else ""
+        extra = []
+        if self.doubts:
+            extra.append(f"{len(self.doubts)} doubt" + ("s" if len(self.doubts) > 1 else ""))
         if self.uncertain:
-            lines.append("  STRUCTURE UNCERTAIN: these hidden states explain the data equally "
-                         "well (score within one standard error; the simplest is shown above):")
-            for alt in self.uncertain:
-                lines.append(f"    - {alt.description}: score {alt.score:.4g} +- "
-                             f"{alt.score_se:.2g}, {alt.size} parameters")
-                lines += [f"        d{n}/dt = {_short(e)}" for n, e in alt.rhs.items()]
-        elif self.alternatives:
-            alt = self.alternatives[0]
-            what = "score" if alt.status == "scored" else "in-sample misfit"
-            value = f"{what} {alt.score:.4g} " if np.isfinite(alt.score) else ""
-            lines.append(f"  runner-up: {alt.description}, {value}({alt.status}), "
-                         f"{alt.size} parameters")
-        if self.data_use is not None:
-            lines.append(f"  data: {self.data_use.sentence()}")
-        lines += [f"  note: {n}" for n in self.notes]
-        return "\n".join(lines)
+            extra.append(f"{len(self.uncertain)} equally good")
+        more = "; " + ", ".join(extra) if extra else ""
+        return (f"HiddenDiscovery({len(self.observed_names)} observed + "
+                f"{len(self.hidden_names)} hidden: {', '.join(self.state_names)}; "
+                f"{verdict}{score}{more})")
 
     def plot(self, truth=None, *, path=None, simulation=None, figsize=None):
         """Observed data against the closed system; hidden states with their band.
@@ -418,7 +301,3 @@ class HiddenDiscovery:
     def save(self, path) -> None:
         """Write the result to a ``.npz`` file (see :func:`load`)."""
         saving.save(self, path)
-
-
-def _short(expr):
-    return str(expr.xreplace({f: sp.Float(float(f), 5) for f in expr.atoms(sp.Float)}))

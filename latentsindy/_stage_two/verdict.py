@@ -17,12 +17,14 @@ import sympy as sp
 from .._core.library import feature_expressions
 from .._core.parallel import map_on, shared_values
 from .._core.timing import stage
-from .field import ParametricSystem
-from .hypotheses import Context, Proposal
-from .nested import nested_system
-from .refine import Fit, GiveUpWatch, Problem, cross_validate
-from .shooting import BlowUp
-from .terms import select_terms
+from .context import Context
+from .fit.field import ParametricSystem
+from .fit.least_squares import GiveUpWatch
+from .fit.refine import Fit, Problem, cross_validate
+from .fit.shooting import BlowUp
+from .fit.terms import select_terms
+from .propose.nested import nested_system
+from .propose.proposal import Proposal
 
 # A first fit whose misfit after its first pass is this many times the best so far gets
 # no enforcing pass: rejection needs only twice the best, and the enforcing pass only
@@ -126,7 +128,7 @@ def first_fit(p: Proposal, ctx: Context, options, best=np.inf, watch=None) -> Tr
     """``p`` refined; ``best`` is the lowest misfit reached so far: a fit whose first
     pass ends ``HOPELESS`` times above it gets no enforcing pass (it is rejected).
     ``best`` may be a function that returns it (asked at every give-up check); ``watch``
-    (a :class:`.refine.GiveUpWatch`) records the checks."""
+    (a :class:`.least_squares.GiveUpWatch`) records the checks."""
     system, candidates, guesses = nested_system(p, ctx, build) if p.nested else build(p, ctx)
     give_up = ((lambda: HOPELESS * max(best(), 1.0)) if callable(best)
                else HOPELESS * max(best, 1.0))
@@ -151,7 +153,7 @@ def first_fits(proposals, ctx: Context, options, trials=()) -> list[Trial]:
     Each fit then gives up against the best of the fits before it that are known when
     it checks (usually a looser bound than the one-by-one order's: an earlier fit may
     still be running in the other process); its give-up checks are recorded
-    (:class:`.refine.GiveUpWatch`) and it is kept exactly when the one-by-one bound
+    (:class:`.least_squares.GiveUpWatch`) and it is kept exactly when the one-by-one bound
     would have given the same fit, else that fit is made again. So the result is the
     loop's, fit for fit, either way.
     """

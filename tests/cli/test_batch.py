@@ -152,7 +152,7 @@ def test_command_line_runs_a_folder_into_one_table(recordings, tmp_path, capsys)
 def test_only_a_lone_run_may_use_a_second_process(monkeypatch):
     """Parallel workers have a core each: no helper process in them; a lone run
     (n_jobs=1) keeps the caller's setting, and the setting is restored after."""
-    from latentsindy._cli import batch
+    from latentsindy import _batch as batch
     from latentsindy._core import parallel
 
     seen = []

@@ -4,8 +4,9 @@ import numpy as np
 import pysindy as ps
 import pytest
 
-from latentsindy import DataUse, discover_hidden
+from latentsindy import discover_hidden
 from latentsindy._core import recordings
+from latentsindy.results import DataUse
 
 
 def series(n=400, seed=0):

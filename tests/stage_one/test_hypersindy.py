@@ -6,9 +6,10 @@ import pytest
 import torch
 from conftest import check_lorenz, r2
 
-from latentsindy import DynamicSINDy, SequentialTrainingOptions, TrainingOptions, systems
+from latentsindy import DynamicSINDy, systems
 from latentsindy.generators import HyperSINDy, HyperSINDyOptions
 from latentsindy.generators.hypersindy import detach_state, interpolate_chunks
+from latentsindy.options import SequentialTrainingOptions, TrainingOptions
 
 
 def _trained_like(gen):

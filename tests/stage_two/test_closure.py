@@ -11,7 +11,7 @@ import sympy as sp
 from scipy.integrate import solve_ivp
 
 from latentsindy import systems
-from latentsindy._stage_two.closure import (
+from latentsindy._stage_two.propose.closure import (
     ClosureFit,
     fit_closure,
     fit_rate_closure,
@@ -19,8 +19,12 @@ from latentsindy._stage_two.closure import (
     support_error,
     with_levels,
 )
-from latentsindy._stage_two.hypotheses import _carrier_pairs, fuller_closure, gauge_free_support
-from latentsindy._stage_two.smoother import (
+from latentsindy._stage_two.propose.hypotheses import (
+    _carrier_pairs,
+    fuller_closure,
+    gauge_free_support,
+)
+from latentsindy._stage_two.propose.smoother import (
     Structure,
     _sparse_solve,
     fit_hidden,
@@ -304,7 +308,7 @@ def _driven_context():
     from scipy.integrate import solve_ivp
 
     from latentsindy._core.library import feature_expressions
-    from latentsindy._stage_two.hypotheses import Context
+    from latentsindy._stage_two.context import Context
 
     k, c, b, force, w = 1.2, 0.2, 0.8, 0.9, 0.35
 
@@ -332,7 +336,8 @@ def test_every_constant_back_separates_a_drive_from_the_oscillator():
     gets no such proposal."""
     from dataclasses import replace
 
-    from latentsindy._stage_two.hypotheses import close, evaluate, with_every_constant
+    from latentsindy._stage_two.propose.hypotheses import with_every_constant
+    from latentsindy._stage_two.propose.proposal import close, evaluate
 
     ctx, (k, c, b), u = _driven_context()
     support = np.zeros((2, len(ctx.feature_names)), dtype=bool)
@@ -361,30 +366,30 @@ def test_a_structure_is_evaluated_once_per_context(monkeypatch):
     ``CACHE_BYTES`` nothing more is kept, and the fit is the same."""
     from dataclasses import replace
 
-    from latentsindy._stage_two import hypotheses
+    from latentsindy._stage_two.propose import proposal
 
     ctx, _, _ = _driven_context()
     support = np.zeros((2, len(ctx.feature_names)), dtype=bool)
     support[0, ctx.feature_names.index("y")] = True
     support[1, 0] = True
     structure = single_term(2, len(ctx.feature_names), 1, 0, support)
-    first = hypotheses.evaluate(structure, ctx, "first")
+    first = proposal.evaluate(structure, ctx, "first")
     assert len(ctx.evaluated) == 1
-    again = hypotheses.evaluate(structure, ctx, "again")
+    again = proposal.evaluate(structure, ctx, "again")
     assert (again.origin, first.origin) == ("again", "first")
     assert again.fit is first.fit and again.score == first.score
     assert len(ctx.evaluated) == 1
     loads = structure.loadings.copy()
     loads[1, ctx.feature_names.index("x"), 0] = 0.5
-    other = hypotheses.evaluate(Structure(structure.support | (loads[..., 0] != 0), loads,
+    other = proposal.evaluate(Structure(structure.support | (loads[..., 0] != 0), loads,
                                           structure.pivots), ctx, "other")
     assert len(ctx.evaluated) == 2 and other.fit is not first.fit
-    rate = hypotheses.evaluate(structure, ctx, "rate", order=2)
+    rate = proposal.evaluate(structure, ctx, "rate", order=2)
     assert len(ctx.evaluated) == 3 and rate.order == 2
     fresh = replace(ctx, threshold=0.1)
     assert fresh.evaluated == {}
-    monkeypatch.setattr(hypotheses, "CACHE_BYTES", 1000)  # less than one hidden series
-    uncached = hypotheses.evaluate(structure, fresh, "uncached")
+    monkeypatch.setattr(proposal, "CACHE_BYTES", 1000)  # less than one hidden series
+    uncached = proposal.evaluate(structure, fresh, "uncached")
     assert fresh.evaluated == {}
     np.testing.assert_array_equal(uncached.hidden[0], first.hidden[0])
     assert uncached.score == first.score

@@ -11,7 +11,8 @@ import pytest
 import sympy as sp
 import torch
 
-from latentsindy import HiddenDiscovery, HiddenState, Term, discover_hidden, systems
+from latentsindy import HiddenDiscovery, discover_hidden, systems
+from latentsindy.results import HiddenState, Term
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "examples"))
 import lorenz_from_x  # noqa: E402
@@ -163,7 +164,7 @@ def test_a_law_that_blows_up_over_the_recording_is_a_doubt(lv):
     """The free run: the found LV law integrated over the whole recording stays bounded
     (no doubt); the same result with dh/dt = h^2 (h0 > 0 blows up in finite time, at
     t = 1 / h0, inside the recording) gets the doubt that says so."""
-    from latentsindy._stage_two.checks import free_run_doubt
+    from latentsindy._stage_two.doubts.runs import free_run_doubt
 
     _, result = lv
     trajectories = [np.hstack([o, h]) for o, h in zip(result.all_observed, result.all_hidden,

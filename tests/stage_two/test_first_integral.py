@@ -7,9 +7,9 @@ import numpy as np
 import pysindy as ps
 import sympy as sp
 
-from latentsindy._stage_two.checks import first_integral_doubt
-from latentsindy._stage_two.field import ParametricSystem
-from latentsindy._stage_two.first_integral import integrated_proposal, integrated_system
+from latentsindy._stage_two.doubts.states import first_integral_doubt
+from latentsindy._stage_two.fit.field import ParametricSystem
+from latentsindy._stage_two.rewrite.first_integral import integrated_proposal, integrated_system
 
 A_OBS, A, B, C0 = -3.0, 0.8, -0.3, 0.05
 X, Y, H, R = sp.symbols("x y h0 h0_rate", real=True)

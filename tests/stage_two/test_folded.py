@@ -10,9 +10,9 @@ import pytest
 import sympy as sp
 from scipy.integrate import solve_ivp
 
-from latentsindy._stage_two.field import ParametricSystem
-from latentsindy._stage_two.folded import Folded, folded_doubts, folded_score
-from latentsindy._stage_two.refine import Problem, cross_validate
+from latentsindy._stage_two.doubts.folded import Folded, folded_doubts, folded_score
+from latentsindy._stage_two.fit.field import ParametricSystem
+from latentsindy._stage_two.fit.refine import Problem, cross_validate
 
 X, H0, H1 = sp.symbols("x h0 h1", real=True)
 MU = 1.0

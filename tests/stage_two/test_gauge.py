@@ -7,8 +7,8 @@ import pysindy as ps
 import pytest
 import sympy as sp
 
-from latentsindy._stage_two.field import ParametricSystem
-from latentsindy._stage_two.gauge import shifted_guesses, shifted_system
+from latentsindy._stage_two.fit.field import ParametricSystem
+from latentsindy._stage_two.rewrite.gauge import shifted_guesses, shifted_system
 
 ALPHA, GAMMA, DELTA, D = 1.1, 0.7, 0.05, 0.03
 X, H = sp.symbols("x h0", real=True)
@@ -76,7 +76,7 @@ def _logistic_prey(d):
     """A predator with a logistic prey through the prey, in the gauge ``h = 1 - x/K -
     y + d x``: dx/dt = h x - d x^2, and h's law by the chain rule (K = 4, b = 0.6,
     c = 0.9)."""
-    from latentsindy._stage_two.gauge import shifted_laws
+    from latentsindy._stage_two.rewrite.gauge import shifted_laws
 
     k, b, c = 4.0, 0.6, 0.9
     y = 1 - _X / k - _H
@@ -99,7 +99,7 @@ def test_an_exchange_that_shifts_the_hidden_state_is_the_same_system():
     x (the same dynamics): recognised when the refit's hidden starts are the shift of
     the chosen fit's (to a tenth of ``SHIFT_MATCH``), not when they differ by 5% of
     their spread."""
-    from latentsindy._stage_two.gauge import SHIFT_MATCH, same_up_to_shift, shift_between
+    from latentsindy._stage_two.rewrite.gauge import SHIFT_MATCH, same_up_to_shift, shift_between
 
     a, b = _logistic_prey(0.0), _logistic_prey(0.25)
     assert a.coef[0, 1] == 0 and b.coef[0, 1] == pytest.approx(-0.25)
@@ -121,7 +121,7 @@ def test_an_exchange_that_shifts_the_hidden_state_is_the_same_system():
 def test_no_shift_where_the_observed_equations_agree_or_a_state_is_seen_twice():
     """An exchange inside the hidden law leaves the observed equations alike: no shift
     (a genuine ambiguity). A hidden state in two observed equations: none either."""
-    from latentsindy._stage_two.gauge import same_up_to_shift, shift_between
+    from latentsindy._stage_two.rewrite.gauge import same_up_to_shift, shift_between
 
     a = _logistic_prey(0.0)
     other = ParametricSystem(a.state_names, 1, a.features, a.coef.copy(), a.free)
@@ -140,7 +140,7 @@ def test_no_shift_where_the_observed_equations_agree_or_a_state_is_seen_twice():
 
 def test_a_refit_that_blew_up_is_no_shift():
     """A refit whose hidden starts are not finite is not the same system."""
-    from latentsindy._stage_two.gauge import same_up_to_shift
+    from latentsindy._stage_two.rewrite.gauge import same_up_to_shift
 
     a, b = _logistic_prey(0.0), _logistic_prey(0.25)
     starts = np.column_stack([np.linspace(0.5, 2.0, 10), np.linspace(-0.5, 0.5, 10)])

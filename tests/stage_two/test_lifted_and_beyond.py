@@ -13,15 +13,15 @@ from scipy.integrate import solve_ivp
 
 from latentsindy import discover_hidden
 from latentsindy._stage_two import restate
-from latentsindy._stage_two.beyond import beyond_terms
-from latentsindy._stage_two.checks import observed_function_doubts
-from latentsindy._stage_two.field import ParametricSystem
-from latentsindy._stage_two.observed_function import (
+from latentsindy._stage_two.doubts.beyond import beyond_terms
+from latentsindy._stage_two.doubts.states import observed_function_doubts
+from latentsindy._stage_two.fit.field import ParametricSystem
+from latentsindy._stage_two.fit.refine import Problem
+from latentsindy._stage_two.rewrite.observed_function import (
     function_reduced_system,
     observed_function,
     state_function,
 )
-from latentsindy._stage_two.refine import Problem
 
 MU = 1.2
 Y, H0, H1 = sp.symbols("y h0 h1", real=True)

@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import pytest
 import sympy as sp
 
-from latentsindy._stage_two.nested import monomial_name
+from latentsindy._stage_two.propose.nested import monomial_name
 
 
 def test_monomial_names_follow_the_library_convention():
@@ -28,7 +28,7 @@ def _lorenz_in_a_shifted_gauge(c, k):
     """
     import numpy as np
 
-    from latentsindy._stage_two.field import ParametricSystem
+    from latentsindy._stage_two.fit.field import ParametricSystem
 
     x, h0, h1 = sp.symbols("x h0 h1", real=True)
     features = (h0, x * h1, x**2, x, x * h0, h1, sp.Integer(1))
@@ -53,7 +53,7 @@ def test_nested_shift_gives_back_the_lorenz_law(c, k):
     are c x and -k x, and the shifted system is Lorenz's law in these variables:
     dx/dt = h0, dh0/dt = -(1 + s) h0 + x h1, dh1/dt = -x h0 - b h1 - s x^2 + b s (r - 1),
     the definitions still fixed."""
-    from latentsindy._stage_two.nested import shifted_nested_system
+    from latentsindy._stage_two.propose.nested import shifted_nested_system
 
     verdict, ctx, (x, h0, h1) = _lorenz_in_a_shifted_gauge(c, k)
     system, shifts = shifted_nested_system(verdict, ctx)
@@ -73,7 +73,7 @@ def test_the_nested_shift_alone_when_the_parents_leaves_the_library():
     """dx/dt = h0 + x^2 would move x^2 into h0, whose chain rule puts x^3 into dh1/dt (not
     a feature of the system): the nested state is still shifted out of its flat
     direction, the parent left as it is."""
-    from latentsindy._stage_two.nested import shifted_nested_system
+    from latentsindy._stage_two.propose.nested import shifted_nested_system
 
     verdict, ctx, (x, h0, h1) = _lorenz_in_a_shifted_gauge(0.0, 13.0)
     system = verdict.system
@@ -88,7 +88,7 @@ def test_the_nested_shift_alone_when_the_parents_leaves_the_library():
 
 
 def test_nested_system_already_in_its_gauge_is_left_alone():
-    from latentsindy._stage_two.nested import shifted_nested_system
+    from latentsindy._stage_two.propose.nested import shifted_nested_system
 
     verdict, ctx, _ = _lorenz_in_a_shifted_gauge(0.0, 0.0)
     assert shifted_nested_system(verdict, ctx) is None
@@ -118,7 +118,7 @@ def test_a_repeated_nested_system_is_judged_once():
     the better fit; other trials are never removed."""
     import numpy as np
 
-    from latentsindy._stage_two.field import ParametricSystem
+    from latentsindy._stage_two.fit.field import ParametricSystem
     from latentsindy._stage_two.judge import _without_repeats
 
     x, h0, h1 = sp.symbols("x h0 h1", real=True)

@@ -12,9 +12,9 @@ from scipy.integrate import solve_ivp
 
 from latentsindy import discover_hidden
 from latentsindy._stage_two import restate
-from latentsindy._stage_two.checks import observed_function_doubts
-from latentsindy._stage_two.field import ParametricSystem
-from latentsindy._stage_two.observed_function import (
+from latentsindy._stage_two.doubts.states import observed_function_doubts
+from latentsindy._stage_two.fit.field import ParametricSystem
+from latentsindy._stage_two.rewrite.observed_function import (
     NEAR,
     observed_function,
     reduced_system,
@@ -162,7 +162,7 @@ def test_duffing_seen_through_x_comes_back_with_one_hidden_state(monkeypatch):
 
 
 def _verdict(trajectory, nested=(), order=1):
-    from latentsindy._stage_two.field import ParametricSystem
+    from latentsindy._stage_two.fit.field import ParametricSystem
 
     names = ("x", "y", "h0", "h1")
     system = ParametricSystem(names, 2, (sp.Integer(1),), np.zeros((4, 1)),
@@ -175,7 +175,7 @@ def test_a_hidden_state_written_twice_is_a_doubt():
     """Rikitake's dynamo came back with z twice (h0 = z, h1 = z - A, confident): a hidden
     state that follows the others along the fitted trajectories is doubted, with the
     relation; independent hidden states, a nested winner and a rate are not checked."""
-    from latentsindy._stage_two.checks import redundant_state_doubts
+    from latentsindy._stage_two.doubts.states import redundant_state_doubts
 
     rng = np.random.default_rng(0)
     t = np.linspace(0, 30, 1500)

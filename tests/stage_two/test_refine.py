@@ -13,25 +13,22 @@ from scipy.integrate import solve_ivp
 
 from latentsindy import systems
 from latentsindy._stage_two import judge
-from latentsindy._stage_two import terms as terms_module
-from latentsindy._stage_two.checks import (
-    doubts,
-    missing_doubts,
-    segment_constant_doubts,
-    weak_doubts,
-)
-from latentsindy._stage_two.field import FeatureMap, ParametricSystem
-from latentsindy._stage_two.judge import rank
-from latentsindy._stage_two.refine import JOIN, Fit, GiveUpWatch, Problem, cross_validate
-from latentsindy._stage_two.result import Refinement, Term
-from latentsindy._stage_two.shooting import DENSE, BlowUp, NormalEquations, as_array, solve
-from latentsindy._stage_two.terms import (
+from latentsindy._stage_two.doubts.checks import doubts, segment_constant_doubts
+from latentsindy._stage_two.doubts.terms import missing_doubts, weak_doubts
+from latentsindy._stage_two.fit import terms as terms_module
+from latentsindy._stage_two.fit.field import FeatureMap, ParametricSystem
+from latentsindy._stage_two.fit.least_squares import GiveUpWatch
+from latentsindy._stage_two.fit.refine import JOIN, Fit, Problem, cross_validate
+from latentsindy._stage_two.fit.shooting import DENSE, BlowUp, NormalEquations, as_array, solve
+from latentsindy._stage_two.fit.terms import (
     AMBIGUITY,
     ambiguities,
     missing_terms,
     select_terms,
     weak_terms,
 )
+from latentsindy._stage_two.judge import rank
+from latentsindy._stage_two.result_parts import Refinement, Term
 from latentsindy._stage_two.verdict import Trial, finish
 
 X, Y, Z, H = sp.symbols("x y z h", real=True)
@@ -93,7 +90,7 @@ def test_polynomial_field_matches_the_general_path():
     the feature map's general path (lambdify, forced by an extra sin feature with a zero
     fixed coefficient): states and sensitivities to start and coefficients, on the
     sample grid and at the segment ends."""
-    from latentsindy._stage_two.shooting import Integrator, make_groups
+    from latentsindy._stage_two.fit.shooting import Integrator, make_groups
 
     feats = (sp.Integer(1), X, Y, Z, X * Y, X * Z, Y**2 * Z)
     coef = np.array([[0.0, -10.0, 10.0, 0.0, 0.0, 0.0, 0.01],
@@ -122,7 +119,7 @@ def test_numpy_and_torch_integrate_a_polynomial_field_alike():
     in torch (CI has no GPU, so the torch path is forced here): states and
     sensitivities equal to 1e-12, with and without sensitivities; a blow-up is reported
     by both."""
-    from latentsindy._stage_two.shooting import Integrator, make_groups
+    from latentsindy._stage_two.fit.shooting import Integrator, make_groups
 
     feats = (sp.Integer(1), X, Y, Z, X * Y, X * Z)
     coef = np.array([[0.0, -10.0, 10.0, 0.0, 0.0, 0.0],
@@ -152,7 +149,7 @@ def test_an_integration_interpolates_only_the_states_asked_for():
     ones): their values and sensitivities are those of the whole run, digit for digit,
     the segment ends hold every state, in numpy and in torch; the interpolation table
     made at the first run of a group serves the next runs unchanged."""
-    from latentsindy._stage_two.shooting import Integrator, make_groups
+    from latentsindy._stage_two.fit.shooting import Integrator, make_groups
 
     feats = (sp.Integer(1), X, Y, Z, X * Y, X * Z)
     coef = np.array([[0.0, -10.0, 10.0, 0.0, 0.0, 0.0],
@@ -231,7 +228,7 @@ def test_damped_solves_agree_dense_and_sparse(size):
 def test_normal_equations_dense_and_sparse_assemble_the_same_system(monkeypatch):
     """The arrow-structured J^T J and J^T r, assembled densely (small systems) and
     sparsely (large ones), equal the products of the whole Jacobian written out."""
-    from latentsindy._stage_two import shooting
+    from latentsindy._stage_two.fit import shooting
 
     rng = np.random.default_rng(1)
     p, k, n = 3, 5, 2

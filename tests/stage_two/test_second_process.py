@@ -15,7 +15,7 @@ from latentsindy import discover_hidden, systems
 from latentsindy._core import parallel
 from latentsindy._core.threads import single_thread
 from latentsindy._stage_two import verdict
-from latentsindy._stage_two.refine import GiveUpWatch
+from latentsindy._stage_two.fit.least_squares import GiveUpWatch
 from latentsindy._stage_two.verdict import HOPELESS
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux" or len(os.sched_getaffinity(0)) < 2,

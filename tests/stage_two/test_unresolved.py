@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from latentsindy._stage_two.checks import UNRESOLVED, unresolved_doubts, unresolved_rate
-from latentsindy._stage_two.field import ParametricSystem
+from latentsindy._stage_two.doubts.states import UNRESOLVED, unresolved_doubts, unresolved_rate
+from latentsindy._stage_two.fit.field import ParametricSystem
 
 X, H, G = sp.symbols("x h g", real=True)
 

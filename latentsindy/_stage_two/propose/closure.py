@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._core.local_fits import is_uniform
+from ..._core.local_fits import is_uniform
 
 N_FOLDS = 5
 TOLERANCE = 0.05  # a sparser model is accepted within max(1 standard error, 5%) of the best

@@ -21,9 +21,10 @@ import numpy as np
 import torch
 from joblib import Parallel, delayed
 
-from .._core import parallel
-from .._core import validation as val
-from .._stage_two.discover import discover_hidden
+from ._core import parallel
+from ._core import validation as val
+from ._stage_two.discover import discover_hidden
+from ._stage_two.result import HiddenDiscovery
 
 TABLE = "runs.csv"
 COLUMNS = ("name", "seed", "wall_s", "error", "hidden_states", "confident", "score",
@@ -37,7 +38,7 @@ class Run:
 
     name: str
     seed: int
-    result: object
+    result: HiddenDiscovery | None
     error: str | None
     wall: float
 

@@ -26,7 +26,8 @@ import numpy as np
 import scipy.sparse as sps
 import scipy.sparse.linalg as spla
 
-from .._core.timing import timed
+from ..._core.timing import timed
+from ..context import MARGIN
 from .field import ParametricSystem
 from .refine import Fit, Problem
 from .shooting import BlowUp
@@ -43,12 +44,6 @@ AMBIGUITY = 4.0
 # criterion, but a small systematic error (smoothing bias, a slightly wrong hidden law)
 # buys that much fit as easily as a law does.
 EVIDENCE = 10.0
-# A term left out is doubted when adding it would change the criterion by less than this:
-# twice the log Bayes factor against the term is then under 2, evidence "not worth more
-# than a bare mention" (Kass & Raftery 1995), so the data have not decided against it (a
-# Rossler with z hidden at 5% noise: its hidden law's small constant, left out, missed
-# the criterion by 1.5 and its fit was reported as confident).
-MARGIN = 2.0
 
 
 @timed("term selection")

@@ -26,31 +26,21 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .._core.derivatives import noise_level
-from .._core.parallel import map_on
-from .._core.timing import timed
+from ..._core.derivatives import noise_level
+from ..._core.parallel import map_on
+from ..._core.timing import timed
+from ..context import NOISE_FLOOR
 from .field import ParametricSystem
-from .shooting import BlowUp, Integrator, NormalEquations, as_array, make_groups, solve
+from .least_squares import RESOLUTION, GiveUpWatch, covariance, levenberg_marquardt
+from .shooting import BlowUp, Integrator, NormalEquations, as_array, make_groups, stable_step
 
 _GAP = 1e-2  # continuity gaps are held below this fraction of the noise level
-# Measurement noise is taken as at least this fraction of each state's std: on exact
-# data the misfit is the integrator's (systematic) error, and statistical decisions
-# (term selection, scores) must not treat it as noise.
-NOISE_FLOOR = 1e-3
-STEP = 0.2  # integrator step times the fastest local rate (see _stable_step)
 MAX_GRID = 400  # integrator steps per segment at most
 _PENALTY = (1e2, 1e4)  # continuity weight: first pass, then the enforcing pass
 # A hidden state's jump at a segment boundary above this fraction of its own spread over
 # the data is a break in the trajectory, not a gap left by the penalty (segments that
 # join leave jumps below 1e-3 of it; shrunk piecewise-constant states jump by 0.5-2x it).
 JOIN = 0.05
-# A fit stops once the Gauss-Newton model's remaining decrease of the misfit (noise
-# variances) is below this. That decrease is the squared distance to the model's
-# minimum in standard errors, jointly over all coefficients and starts: the fit stops
-# within 0.22 of them, while every decision made on the misfit (term prices ~10,
-# ambiguity 4) is forty times coarser. Not for held-out folds (cross_validate), whose
-# misfit does not contain the data that is scored.
-RESOLUTION = 0.05
 
 
 @dataclass(frozen=True)
@@ -108,39 +98,6 @@ class Fit:
         return np.sqrt(np.maximum(np.diag(self.covariance), 0.0) * self.residual_variance)
 
 
-class GiveUpWatch:
-    """The give-up checks of one fit (:meth:`Problem.fit`): the data misfits at which it
-    went on, and the one at which it gave up (None if it never did).
-
-    A fit's path is the same under any bound until a check stops it, so from these the
-    fit under another bound can be told to be this same fit (:meth:`same_under`): the
-    first fits of several proposals run side by side, each with the bound known at each
-    of its checks, and are kept exactly when the one-by-one order would have given them
-    the same fit.
-    """
-
-    def __init__(self):
-        self.went_on = []
-        self.gave_up_at = None
-        self.dof = None
-
-    def check(self, data_cost: float, limit: float) -> bool:
-        """Whether a fit at ``data_cost`` gives up against ``limit`` (recorded)."""
-        if data_cost > limit:
-            self.gave_up_at = data_cost
-            return True
-        self.went_on.append(data_cost)
-        return False
-
-    def same_under(self, give_up: float) -> bool:
-        """Whether the fit with ``give_up`` (per degree of freedom, as ``fit`` takes it)
-        would have been this one: it goes on at every check this one went on at, and
-        gives up where this one did."""
-        limit = give_up * self.dof if self.dof is not None else np.inf
-        return (all(c <= limit for c in self.went_on)
-                and (self.gave_up_at is None or self.gave_up_at > limit))
-
-
 class Problem:
     """The data, segments and weights of one refinement."""
 
@@ -173,7 +130,7 @@ class Problem:
         # a finite step budget: at most MAX_GRID steps per segment, however fast the
         # initial system's rates (a system that needs more is stiff or wild; if it blows
         # up on that grid, that is reported as BlowUp)
-        step = float(np.clip(_stable_step(self.integrator, guesses, system.coef),
+        step = float(np.clip(stable_step(self.integrator, guesses, system.coef),
                              duration / MAX_GRID, duration / 2))
         self.groups = make_groups(self.times, self.observed, duration, step, options.device)
         self.n_segments = sum(g.n_segments for g in self.groups)
@@ -261,7 +218,7 @@ class Problem:
         watch = GiveUpWatch() if watch is None else watch
         watch.dof = dof
         for k, rho in enumerate(penalties):
-            values, starts, eq, its, ok = _levenberg_marquardt(
+            values, starts, eq, its, ok = levenberg_marquardt(
                 self, system, values, starts, weights, rho, max_iterations,
                 resolution=resolution, give_up=lambda: bound() * dof, watch=watch)
             total += its
@@ -273,7 +230,7 @@ class Problem:
                     break
         fitted = system.with_free(values)
         return Fit(fitted, starts, eq.cost, eq.data_cost, self.n_data, self._gap(fitted, starts),
-                   total, _covariance(eq, system.n_free), status, rho)
+                   total, covariance(eq, system.n_free), status, rho)
 
     def _gap(self, system, starts):
         """Largest continuity gap between consecutive segments, in ``scale`` units."""
@@ -410,74 +367,6 @@ def cross_validate(problem: Problem, fit: Fit, max_iterations=10):
     return float(errors.mean()), float(errors.std(ddof=1) / np.sqrt(len(errors))), errors
 
 
-def _levenberg_marquardt(problem, system, values, starts, weights, rho, max_iterations,
-                         tolerance=1e-6, resolution=RESOLUTION, give_up=lambda: np.inf,
-                         watch=None):
-    """Marquardt-scaled Levenberg-Marquardt; every trial point is integrated with its
-    sensitivities, so an accepted step needs no second integration. Stops when a step
-    lowers the cost by less than ``tolerance`` (relative), when the Gauss-Newton
-    model's remaining decrease is below ``resolution`` (noise variances; no
-    integration is spent on it), when no step lowers the cost, or when the data misfit
-    is above ``give_up()`` after half the iterations (``watch`` records that check)."""
-    watch = GiveUpWatch() if watch is None else watch
-    n_free = system.n_free
-    eq = problem.equations(system.with_free(values), starts, weights, rho)
-    mu, converged, iterations, accepted = 1e-3, False, 0, True
-    while iterations < max_iterations:
-        if accepted:  # a new point: its matrix serves every damped solve there
-            a = eq.matrix()
-            diag = a.diagonal()
-            scale = np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
-        # at a point just reached, the undamped Gauss-Newton model's whole remaining
-        # decrease (g' A^-1 g) below the resolution ends the fit without integrating
-        # another step (the damped step's decrease would understate it in a long valley
-        # of correlated coefficients, and stop there far from the minimum)
-        if accepted and resolution > 0:
-            if -(eq.grad @ solve(a, -eq.grad, 1e-10 * scale)) < resolution:
-                converged = True
-                break
-        if iterations >= max_iterations // 2 and watch.check(eq.data_cost, give_up()):
-            break
-        step = solve(a, -eq.grad, mu * scale)
-        iterations += 1
-        trial_values = values + step[:n_free]
-        trial_starts = starts + step[n_free:].reshape(starts.shape)
-        try:
-            trial = problem.equations(system.with_free(trial_values), trial_starts, weights,
-                                      rho)
-            better = np.isfinite(trial.cost) and trial.cost < eq.cost
-        except BlowUp:
-            better = False
-        if better:
-            decrease = eq.cost - trial.cost
-            values, starts, eq = trial_values, trial_starts, trial
-            mu, accepted = max(mu / 3.0, 1e-9), True
-            if decrease < tolerance * eq.cost:
-                converged = True
-                break
-        else:
-            mu, accepted = mu * 8.0, False
-            if mu > 1e8:
-                converged = True  # no step lowers the cost: a (local) minimum
-                break
-    return values, starts, eq, iterations, converged
-
-
-def _covariance(eq, n_free):
-    """Covariance of the free coefficients: the coefficient block of (J^T J)^-1 times
-    the residual variance per data point (1 when the noise level is right)."""
-    if n_free == 0:
-        return np.zeros((0, 0))
-    a = eq.matrix()
-    unit = np.zeros((a.shape[0], n_free))
-    unit[np.arange(n_free), np.arange(n_free)] = 1.0
-    try:
-        block = np.column_stack([solve(a, unit[:, k]) for k in range(n_free)])[:n_free]
-    except (np.linalg.LinAlgError, RuntimeError):
-        return np.full((n_free, n_free), np.nan)
-    return block
-
-
 def _dominant_period(observed, times):
     """Mean time between upward crossings of the mean, with a hysteresis of a quarter
     standard deviation so that noise makes no crossings (the longest over the states)."""
@@ -497,15 +386,3 @@ def _dominant_period(observed, times):
     return best if best > 0 else float(times[0][-1] - times[0][0])
 
 
-def _stable_step(integrator, guesses, coef):
-    """A Runge-Kutta step resolving the fastest local rate of the initial system
-    (spectral radius of the Jacobian along the guessed states, 99th percentile): ``STEP``
-    radians of the fastest oscillation per step. At 0.3 RK4's numerical damping of an
-    oscillator (about (h w)^6 / 144 per step) was large enough on exact data to be
-    compensated by a spurious term; at 0.2 it is ten times smaller."""
-    y = torch.as_tensor(np.vstack(guesses)[::max(1, len(np.vstack(guesses)) // 2000)])
-    _, dphi = integrator.features(y)
-    jac = torch.einsum("bfs,if->bis", dphi, torch.as_tensor(coef, dtype=torch.float64))
-    rate = torch.linalg.eigvals(jac).abs().max(dim=-1).values.numpy()
-    fastest = float(np.quantile(rate, 0.99)) if len(rate) else 0.0
-    return STEP / fastest if fastest > 0 else np.inf

@@ -363,3 +363,20 @@ def solve(matrix, rhs, damping=None):
     if damping is not None:
         matrix = matrix + sps.diags(damping, format="csc")
     return spsolve(matrix, rhs)
+
+
+STEP = 0.2  # integrator step times the fastest local rate (see stable_step)
+
+
+def stable_step(integrator, guesses, coef):
+    """A Runge-Kutta step resolving the fastest local rate of the initial system
+    (spectral radius of the Jacobian along the guessed states, 99th percentile): ``STEP``
+    radians of the fastest oscillation per step. At 0.3 RK4's numerical damping of an
+    oscillator (about (h w)^6 / 144 per step) was large enough on exact data to be
+    compensated by a spurious term; at 0.2 it is ten times smaller."""
+    y = torch.as_tensor(np.vstack(guesses)[::max(1, len(np.vstack(guesses)) // 2000)])
+    _, dphi = integrator.features(y)
+    jac = torch.einsum("bfs,if->bis", dphi, torch.as_tensor(coef, dtype=torch.float64))
+    rate = torch.linalg.eigvals(jac).abs().max(dim=-1).values.numpy()
+    fastest = float(np.quantile(rate, 0.99)) if len(rate) else 0.0
+    return STEP / fastest if fastest > 0 else np.inf

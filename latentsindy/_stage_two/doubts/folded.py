@@ -33,10 +33,11 @@ import numpy as np
 import pysindy as ps
 import sympy as sp
 
-from .field import ParametricSystem
-from .judge import TIE
-from .refine import Problem, cross_validate
-from .shooting import BlowUp
+from ..._core.doubt import Doubt
+from ..context import TIE
+from ..fit.field import ParametricSystem
+from ..fit.refine import Problem, cross_validate
+from ..fit.shooting import BlowUp
 
 
 @dataclass(frozen=True)
@@ -134,10 +135,11 @@ def folded_doubts(folded: Folded | None, score, score_se, size, names) -> tuple[
     if folded is None or not folded.score <= max(score + score_se, TIE):
         return ()
     parent, nested = names
-    return (f"one hidden state ({parent}) whose law has terms up to degree {folded.degree} "
+    return (Doubt("folded law",
+            f"one hidden state ({parent}) whose law has terms up to degree {folded.degree} "
             f"reproduces held-out data at least as well as this system with two (score "
             f"{folded.score:.3g} +- {folded.score_se:.2g} against {score:.3g} +- "
             f"{score_se:.2g}; {folded.size} parameters against {size}): {nested} may stand "
             f"for a power of {parent} that the closure library lacks rather than a "
             f"variable of its own; try closure_library=ps.PolynomialLibrary(degree="
-            f"{folded.degree}) and compare",)
+            f"{folded.degree}) and compare"),)

@@ -21,8 +21,8 @@ from dataclasses import replace
 import numpy as np
 import sympy as sp
 
-from .._core.library import feature_expressions
-from .field import ParametricSystem, polynomial_rows, system_from_rows
+from ..._core.library import feature_expressions
+from ..fit.field import ParametricSystem, polynomial_rows, system_from_rows
 
 
 def integrated_system(verdict):

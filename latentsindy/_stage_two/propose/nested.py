@@ -21,11 +21,13 @@ from dataclasses import replace
 import numpy as np
 import sympy as sp
 
-from .._core.library import feature_expressions, state_symbols
-from .._core.symbolic import VectorField
-from .field import ParametricSystem, polynomial_rows, system_from_rows
-from .gauge import shifted_laws
-from .hypotheses import Context, Proposal, _usable, pruned
+from ..._core.library import feature_expressions, state_symbols
+from ..._core.symbolic import VectorField
+from ..context import Context
+from ..fit.field import ParametricSystem, polynomial_rows, system_from_rows
+from ..rewrite.gauge import shifted_laws
+from .hypotheses import _usable, pruned
+from .proposal import Proposal
 from .smoother import single_term
 
 PARENT = "q0"  # the parent hidden state's name inside the augmented system

@@ -31,118 +31,19 @@ Sources of proposals:
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 import sympy as sp
 
-from .._core.derivatives import AdaptiveSavitzkyGolay
-from .._core.timing import timed
-from .closure import ClosureFit, fit_closure, fit_rate_closure
-from .smoother import HiddenFit, Structure, fit_hidden, prune_constants, single_term
+from ..._core.timing import timed
+from ..context import Context
+from .proposal import Proposal, close, evaluate
+from .smoother import Structure, fit_hidden, prune_constants, single_term
 
 MAX_RANK = 3  # at most this many hidden states from shared variation
 KEEP = 3  # proposals passed on to the judge besides the ones always judged
 IMPROVE = 0.8  # a constant-term move must cut the closure error by 20%
-CACHE_BYTES = 2**28  # evaluated structures kept per context (see evaluate)
-
-
-@dataclass(frozen=True)
-class Context:
-    """Everything stage two needs about the data (all trajectories)."""
-
-    observed_names: tuple
-    feature_names: tuple
-    feature_exprs: tuple  # sympy expression of each library feature
-    times: list
-    observed: list
-    smoothed: list
-    thetas: list  # library on the smoothed states
-    sigma: np.ndarray  # measurement noise std per observed state
-    spacing: list  # knot spacing of hidden series per trajectory, its mean sample steps
-    span: int  # differentiator window, samples
-    free_rows: np.ndarray  # equations whose terms are learned
-    threshold: float
-    closure_library: object
-    # (structure, order) -> (fit, closure, hidden) of :func:`evaluate` on these data:
-    # the proposals' searches reach the same structure by several paths (a fifth of the
-    # evaluations on the modulated oscillator). A context made from this one
-    # (``dataclasses.replace``) starts with its own, empty cache.
-    evaluated: dict = field(init=False, repr=False, compare=False)
-
-    def __post_init__(self):
-        object.__setattr__(self, "evaluated", {})
-
-
-@dataclass(frozen=True)
-class Proposal:
-    """A structure, the hidden series it implies and their closure."""
-
-    structure: Structure
-    fit: HiddenFit
-    closure: ClosureFit
-    hidden: list  # (T, n_hidden + order - 1) per trajectory: hidden states (and rate)
-    order: int
-    origin: str
-    # a hidden state inside the hidden equation (:mod:`.nested`): ((its proposal on the
-    # augmented data, its carrier as a sympy monomial, the augmented context),)
-    nested: tuple = ()
-
-    @property
-    def n_states(self) -> int:
-        """Hidden states of the closed system."""
-        return self.structure.n_hidden + self.order - 1 + len(self.nested)
-
-    @property
-    def score(self) -> float:
-        return self.closure.cv_error
-
-
-def evaluate(structure, ctx: Context, origin: str, order: int = 1) -> Proposal:
-    """Hidden series of ``structure`` and their closure (computed once per structure,
-    loadings included, and context)."""
-    key = (structure.support.tobytes(), structure.loadings.tobytes(),
-           structure.loadings.shape, structure.pivots, order)
-    if key in ctx.evaluated:
-        fit, closure, hidden = ctx.evaluated[key]
-        return Proposal(structure, fit, closure, hidden, order, origin)
-    fit = fit_hidden(structure, ctx.thetas, ctx.observed, ctx.times, ctx.sigma, ctx.spacing)
-    p = close(structure, fit, ctx, origin, order)
-    # the hidden series dominate an entry's size: a few hundred structures of a
-    # 2000-sample series take a few MB; long series stop being kept at CACHE_BYTES
-    size = sum(h.nbytes for h in p.hidden) + sum(h.nbytes for h in fit.hidden)
-    if size * (len(ctx.evaluated) + 1) <= CACHE_BYTES:
-        ctx.evaluated[key] = (p.fit, p.closure, p.hidden)
-    return p
-
-
-@timed("closure")
-def close(structure, fit, ctx, origin, order=1):
-    """Closure of a fitted structure; ``order=2`` adds the rate of the (single) hidden
-    state as a second hidden state and closes the rate."""
-    hidden = [h for h in fit.hidden]
-    names = [f"h{a}" for a in range(structure.n_hidden)]
-    if order == 2:
-        rates = [_derivative(h, t) for h, t in zip(hidden, ctx.times, strict=True)]
-        states = [np.hstack([h, r]) for h, r in zip(hidden, rates, strict=True)]
-        closure = fit_rate_closure(hidden, rates, ctx.smoothed, ctx.times, ctx.closure_library,
-                                   ["g0"] + names + list(ctx.observed_names), ctx.span)
-        return Proposal(structure, fit, closure, states, 2, origin)
-    rates = [_derivative(h, t, edge=True) for h, t in zip(hidden, ctx.times, strict=True)]
-    closure = fit_closure(hidden, [r for r, _ in rates], ctx.smoothed, ctx.times,
-                          ctx.closure_library, names, list(ctx.observed_names), ctx.span,
-                          edges=[e for _, e in rates])
-    return Proposal(structure, fit, closure, hidden, 1, origin)
-
-
-def _derivative(series, t, edge=False):
-    """The series' rate; with ``edge``, also the samples at either end whose rate was
-    extrapolated (half the widest window)."""
-    method = AdaptiveSavitzkyGolay()
-    rate = method(np.asarray(series, float), t)
-    if edge:
-        return rate, max(method.windows_, default=1) // 2
-    return rate
 
 
 @timed("proposals")

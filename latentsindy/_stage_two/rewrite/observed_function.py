@@ -31,17 +31,11 @@ from dataclasses import replace
 import numpy as np
 import sympy as sp
 
-from .field import polynomial_rows, system_from_rows
+from ..context import NEAR
+from ..fit.field import polynomial_rows, system_from_rows
 
 MAX_DEGREE = 4  # highest total degree of F tried
 TOLERANCE = 1e-8  # relative mismatch of the law's coefficients accepted as rounding
-# Largest RMS of ``h - F(x)`` along the fitted trajectories, relative to the spread of
-# h, for a state to be tried as a function of the observed states. Damped Duffing seen
-# through x at 5% noise: the velocity's x^3 carried by a second state that followed
-# ``a x + c`` to 0.01-0.05%; states that were hidden variables stayed 4-14% from any
-# polynomial of degree <= 4. A loose gate costs a refit, not a wrong answer: the
-# system without the state must score as well as the one with it.
-NEAR = 0.01
 
 
 def observed_function(system, state: int, over=None):

@@ -28,9 +28,9 @@ import itertools
 import numpy as np
 import sympy as sp
 
-from .field import ParametricSystem
-from .shooting import BlowUp
-from .terms import missing_terms
+from ..fit.field import ParametricSystem
+from ..fit.shooting import BlowUp
+from ..fit.terms import missing_terms
 
 # How far below a term's price an added term must lower the misfit (residual variances,
 # i.e. twice the log Bayes factor in BIC's approximation) to count: "strong" evidence on
@@ -101,3 +101,5 @@ def _degree(feature, symbols):
     if len(poly.terms()) != 1 or poly.coeffs()[0] != 1:
         return None
     return poly.total_degree()
+
+

@@ -23,7 +23,7 @@ import numpy as np
 import scipy.sparse as sps
 from scipy.sparse.linalg import spsolve
 
-from .._core.local_fits import positions
+from ..._core.local_fits import positions
 
 _LAMBDAS = np.logspace(-6, 4, 11)  # relative curvature weights searched
 RELAX = 2.0  # over-relaxation of the loadings' alternating updates (see _update_loadings)

@@ -1,0 +1,88 @@
+"""The checks on the chosen system: each failed check is a sentence (a doubt) saying
+what failed and what to try. Held-out score, convergence and significance
+(:func:`doubts`), terms exchangeable, weak or missing, constants that differ between
+recordings, a first integral not preferred, and the whole-recording run."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..._core.doubt import Doubt
+
+# A closed system reproduces held-out data when its score (held-out misfit in noise
+# variances) is ~1. The noise level is itself estimated from the data (to ~10%), so a
+# score is called too high only when it exceeds 1 + REPRODUCTION_SLACK by two standard
+# errors. Over the discovery benchmark's correct results the largest
+# score - 2 se was 1.07; a missing term or hidden state gives more.
+REPRODUCTION_SLACK = 0.15
+SIGNIFICANCE = 2.0  # a kept coefficient should be this many standard errors from zero
+
+
+def doubts(score, score_se, refinement, terms, hidden):
+    """The checks a refined system fails, each as a sentence with its remedy."""
+    found = []
+    if not (np.isfinite(score) and np.isfinite(score_se)):
+        found.append(Doubt("not scored",
+                     "the closed system could not be scored on held-out data (its "
+                     "integration blew up, or its hidden states jump between integration "
+                     "segments): it was not checked against the data"))
+    elif score - SIGNIFICANCE * score_se > 1 + REPRODUCTION_SLACK:
+        found.append(Doubt(
+            "score",
+            f"the closed system does not reproduce held-out data down to their noise (score "
+            f"{score:.3g} +- {score_se:.2g}, expected ~1): a term or a hidden state is "
+            "probably missing; try a richer library or closure_library, or more data"))
+    if refinement.status != "converged":
+        found.append(Doubt(
+            "not converged",
+            f"refinement by integration stopped at its iteration limit ({refinement.status}, "
+            f"{refinement.iterations} iterations): the coefficients are not a converged fit"))
+    weak = [f"d{t.state}/dt: {t.feature}" for t in terms
+            if t.state in hidden and not t.fixed and np.isfinite(t.stderr)
+            and abs(t.value) < SIGNIFICANCE * t.stderr]
+    if weak:
+        found.append(Doubt(
+            "insignificant",
+            f"{len(weak)} hidden-equation coefficient(s) within {SIGNIFICANCE:g} standard "
+            f"errors of zero ({', '.join(weak[:4])}{', ...' if len(weak) > 4 else ''}): "
+            "the data do not determine them"))
+    return tuple(found)
+
+
+def segment_constant_doubts(terms, names, n_observed, trajectories, stds):
+    """A hidden state without dynamics (``dh/dt = 0``) is one constant per recording (or
+    gap-separated segment): when those constants differ beyond their standard errors,
+    the recordings do not share one law (each gets its own parameter). A doubt per such
+    state; also one when a constant cannot be read (a trajectory blew up)."""
+    if len(trajectories) < 2:
+        return ()
+    moving = {t.state for t in terms if t.value != 0}
+    found = []
+    for a, name in enumerate(names):
+        if name in moving:
+            continue
+        col = n_observed + a
+        values = np.array([tr[0, col] for tr in trajectories])
+        if not np.all(np.isfinite(values)):
+            found.append(Doubt(
+                "recording constant",
+                f"{name} has no dynamics of its own and its constant could not be read in "
+                "every recording (an integration blew up): whether the recordings share "
+                "one law was not checked"))
+            continue
+        errors = np.array([sd[0, col] for sd in stds])
+        spread = np.abs(values[:, None] - values[None, :])
+        bound = SIGNIFICANCE * np.sqrt(errors[:, None] ** 2 + errors[None, :] ** 2)
+        if np.any(spread > np.where(np.isfinite(bound), bound, 0.0)
+                  + 1e-9 * np.max(np.abs(values))):
+            found.append(Doubt(
+                "recording constant",
+                f"{name} has no dynamics of its own but takes different constant values in "
+                f"different recordings or segments ({', '.join(f'{v:.4g}' for v in values[:5])}"
+                f"{', ...' if len(values) > 5 else ''}): they do not share one law (each "
+                "has its own parameter); the system may describe each recording's trend "
+                "rather than the dynamics. Longer recordings, or a hidden state with an "
+                "equation of its own, are needed"))
+    return tuple(found)
+
+
