@@ -1,9 +1,13 @@
 """Recordings as measured: missing samples, gaps, and several recordings of one system.
 
 A recording is cut into segments that share the law and each get their own hidden
-initial values. Rows with a missing value (NaN or infinite, in any state or in the
-time) are dropped; a few dropped rows only make the sampling irregular, which every
-later step handles on the actual times. A *gap* is a time step far longer than the
+initial values. Rows with a missing value (NaN, in any state or in the time) are
+dropped; an infinite value is an error (it is a failed computation or a sensor's
+overflow, not a missing sample: replace it with NaN to drop its row). When more than
+:data:`WARN_SHARE` of a recording's rows go unused (missing, or in segments too short
+to use), a warning says so: the result's ``data_use`` counts them too. A few dropped
+rows only make the sampling irregular, which every later step handles on the actual
+times. A *gap* is a time step far longer than the
 spacing around it (:data:`GAP_FACTOR` times the mean of the
 :data:`_NEIGHBOURS` steps on either side): the derivative there cannot be estimated
 and a hidden state cannot be carried across it by the data, so the recording is
@@ -15,6 +19,7 @@ dropped, each with a note.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -25,6 +30,7 @@ GAP_FACTOR = 20.0  # a step this many times the local mean step splits a recordi
 MIN_SEGMENT = 32  # fewer samples cannot fix a derivative estimate and a hidden start
 _NEIGHBOURS = 16  # steps on either side that set the local spacing
 GAPS = ("split", "raise")
+WARN_SHARE = 0.1  # a recording losing more than this share of its rows gets a warning
 
 
 @dataclass(frozen=True)
@@ -74,19 +80,21 @@ def split(x, t, *, gaps: str = "split", what: str = "x_observed"):
     recordings = _recordings(x, what, t)
     times = _times(t, recordings)
     segments, seg_times, sources, dropped, missing = [], [], [], [], 0
+    unused_notes = []  # warned about once something is left to use
     for k, (xk, tk) in enumerate(zip(recordings, times, strict=True)):
         name = f"{what}[{k}]" if len(recordings) > 1 else what
+        _check_infinite(xk, tk, name)
         bad = ~np.all(np.isfinite(xk), axis=1) | ~np.isfinite(tk)
         _check_columns(xk, name)
         if bad.any() and gaps == "raise":
             raise ValueError(
-                f"{name} has {int(bad.sum())} row(s) with a NaN or infinite value or time "
+                f"{name} has {int(bad.sum())} row(s) with a NaN value or time "
                 f"(first at row {int(np.argmax(bad))}); with gaps='raise' they are refused. Use "
                 "the default gaps='split' to drop them and split the recording where they "
                 "leave a gap.")
         if bad.all():
             raise ValueError(
-                f"Every row of {name} ({len(bad)} rows) has a NaN or infinite value in some "
+                f"Every row of {name} ({len(bad)} rows) has a NaN value in some "
                 "state or in its time, and a row with any missing value is dropped: nothing "
                 "is left. States measured at different times need a common time grid "
                 "(interpolate the slower one), or pass only the states measured together.")
@@ -102,8 +110,10 @@ def split(x, t, *, gaps: str = "split", what: str = "x_observed"):
                 f"spacing around it (first from t={tk[rows[i]]:g} to t={tk[rows[i + 1]]:g}); "
                 "with gaps='raise' they are refused. Use the default gaps='split' to treat "
                 "the pieces as segments of one system.")
+        unused = int(bad.sum())
         for piece in np.split(rows, cuts + 1):
             if len(piece) < MIN_SEGMENT:
+                unused += len(piece)
                 dropped.append(f"a segment of {name} with {len(piece)} samples (t={tk[piece[0]]:g} "
                                f"to {tk[piece[-1]]:g}) was dropped: fewer than {MIN_SEGMENT} "
                                "samples between gaps")
@@ -111,11 +121,19 @@ def split(x, t, *, gaps: str = "split", what: str = "x_observed"):
             segments.append(xk[piece])
             sources.append((k, int(piece[0]), int(piece[-1])))
             seg_times.append(np.asarray(tk[piece], dtype=float))
+        if unused > WARN_SHARE * len(xk):
+            unused_notes.append(
+                f"{unused} of the {len(xk)} rows of {name} ({unused / len(xk):.0%}) are not "
+                f"used: {int(bad.sum())} have a missing value and {unused - int(bad.sum())} "
+                f"lie in segments shorter than {MIN_SEGMENT} samples between gaps (see the "
+                "result's data_use). Check the recording if that is not what you expect.")
     if not segments:
         raise ValueError(
             f"No part of {what} is long enough to use: at least {MIN_SEGMENT} samples without "
             "a gap are needed (for the differentiator's window and a hidden state's start; "
             f"hundreds are better), and {'; '.join(dropped)}.")
+    for note in unused_notes:
+        warnings.warn(note, UserWarning, stacklevel=4)  # at the discover_hidden call
     use = DataUse(len(recordings), len(segments), int(sum(len(s) for s in segments)),
                   missing, tuple(dropped), tuple(sources))
     return segments, seg_times, use
@@ -192,6 +210,16 @@ def _times(t, recordings):
             val._one_times(tk, xk.shape[0], name)  # raises the boundary's message
         out.append(np.asarray(arr, dtype=float))
     return out
+
+
+def _check_infinite(x, t, name):
+    rows = np.flatnonzero(np.isinf(x).any(axis=1) | np.isinf(np.asarray(t, dtype=float)))
+    if len(rows):
+        shown = ", ".join(str(r) for r in rows[:5]) + (", ..." if len(rows) > 5 else "")
+        raise ValueError(
+            f"{name} has {len(rows)} row(s) with an infinite value or time (rows {shown}). "
+            "An infinite value is not a missing sample but a failed computation or an "
+            "overflow; replace it with NaN to drop its row (a missing sample), or fix it.")
 
 
 def _check_columns(x, name):

@@ -30,7 +30,9 @@ def test_missing_rows_and_gaps_split_a_recording():
     x[100:103] = np.nan  # a few missing rows: irregular sampling, no split
     x[500:600, 1] = np.nan  # a long stretch: a gap
     t[700:] += 50.0  # a jump in time: another gap
-    segs, times, use = recordings.split(x, t)
+    with pytest.warns(UserWarning, match=r"103 of the 1000 rows of x_observed \(10%\) are not "
+                                         r"used: 103 have a missing value and 0 lie in"):
+        segs, times, use = recordings.split(x, t)
     assert use == DataUse(1, 3, 897, 103, (), ((0, 0, 499), (0, 600, 699), (0, 700, 999)))
     assert [len(s) for s in segs] == [497, 100, 300]
     assert all(np.all(np.isfinite(s)) for s in segs)
@@ -41,7 +43,9 @@ def test_missing_rows_and_gaps_split_a_recording():
 def test_short_pieces_are_dropped_with_a_note():
     x, t = series(400)
     x[20:100] = np.nan  # leaves 20 samples before the gap
-    segs, _, use = recordings.split(x, t)
+    with pytest.warns(UserWarning, match=r"100 of the 400 rows .* 80 have a missing value and "
+                                         r"20 lie in segments shorter than 32"):
+        segs, _, use = recordings.split(x, t)
     assert len(segs) == 1 and use.segments == 1
     assert len(use.dropped) == 1
     assert "with 20 samples" in use.dropped[0] and "fewer than 32" in use.dropped[0]
@@ -167,3 +171,33 @@ def test_a_spacing_that_is_not_a_real_number(dt):
     x, _ = series(100)
     with pytest.raises(TypeError, match="sample spacing t must be a positive real number"):
         recordings.split(x, dt)
+
+
+def test_a_tenth_of_a_recording_unused_is_not_worth_a_warning():
+    x, t = series(1000)
+    x[100:200] = np.nan  # exactly 10%: the warning starts above it
+    segs, _, use = recordings.split(x, t)
+    assert use.missing_rows == 100 and sum(len(s) for s in segs) == 900
+
+
+@pytest.mark.parametrize("where", ["x", "t"])
+def test_infinite_values_are_an_error_naming_the_rows(where):
+    x, t = series(400)
+    if where == "x":
+        x[[3, 250], 1] = np.inf
+        x[7, 0] = -np.inf
+    else:
+        t = t.copy()
+        t[[3, 7, 250]] = np.inf
+    with pytest.raises(ValueError, match=r"x_observed has 3 row\(s\) with an infinite value or "
+                                         r"time \(rows 3, 7, 250\)\. .*replace it with NaN"):
+        recordings.split(x, t)
+
+
+def test_infinite_values_of_a_second_recording_are_named():
+    x, t = series(400)
+    y = x.copy()
+    y[np.arange(10, 80, 10), 0] = np.inf
+    with pytest.raises(ValueError, match=r"x_observed\[1\] has 7 row\(s\) .*\(rows 10, 20, 30, "
+                                         r"40, 50, \.\.\.\)"):
+        recordings.split([x, y], [t, t])
