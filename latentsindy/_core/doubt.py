@@ -26,9 +26,15 @@ KINDS = {
     "redundant state": "two hidden states are one state written twice",
     "unresolved": "a hidden state moves faster than the sampling resolves",
     "free run": "the system integrated over a whole recording blows up or runs out of budget",
+    "no law": "no term of the library was kept: no law was found",
     # stage one: the coefficients' structure
     "rival structure": "another structure explains the derivatives about as well",
     "two optima": "the structure search has two optima",
+    "preferred structure": "the exact model prefers another structure",
+    "equation misfit": "a fitted equation misses the derivatives by more than their noise",
+    "generator misfit": "the generator misses the derivatives by more than their noise",
+    "small term": "a term explains so little that a small change of threshold drops it",
+    "generator disagreement": "the generator's and the exact model's variation disagree",
     # files written before doubts had kinds
     "unspecified": "a doubt read from a file written before doubts had kinds",
 }

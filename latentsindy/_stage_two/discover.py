@@ -18,6 +18,7 @@ import pysindy as ps
 from .._core import recordings
 from .._core import validation as val
 from .._core.derivatives import AdaptiveSavitzkyGolay, noise_level, window_capped
+from .._core.doubt import Doubt
 from .._core.library import check_library, feature_expressions, fit_library
 from .._core.threads import single_thread
 from .._core.timing import recording, timed
@@ -27,7 +28,7 @@ from .context import NOISE_FLOOR, Context
 from .fit.refine import RefineOptions
 from .judge import judge_all
 from .propose.hypotheses import propose
-from .propose.proposal import evaluate
+from .propose.proposal import evaluate, without_hidden
 from .propose.smoother import Structure
 from .result import HiddenDiscovery
 
@@ -215,17 +216,13 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
         coefs.append(model.coefficients(n_samples=n_samples))
     first = coefs[0]
     pairs = _varying(coefs, hidden_terms)
-    if not pairs:
-        raise ValueError(
-            "No coefficient varies in time beyond its uncertainty, so there is no hidden "
-            f"variable to discover (active terms: {first.active_terms()}). If one should vary, "
-            "name it with hidden_terms=[(state, feature)].")
-
     ctx = _context(fits[0], trajs, times, names, first, closure_library, support)
     index = [(names.index(s), first.feature_names.index(f)) for s, f in pairs]
-    series = np.stack([np.concatenate([c.term(s, f) for c in coefs]) for s, f in pairs],
-                      axis=1)
-    if hidden_terms is None:
+    if not pairs:  # the observed states close on their own, or no law is found
+        proposals = [without_hidden(first.support, ctx)]
+    elif hidden_terms is None:
+        series = np.stack([np.concatenate([c.term(s, f) for c in coefs]) for s, f in pairs],
+                          axis=1)
         proposals = propose(ctx, first.support, index, series, fuller=refine,
                             max_rank=max_hidden)
     else:
@@ -246,6 +243,11 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
     else:
         stds = {ij: first.std[:, ij[0], ij[1]] for ij in index}
         result = from_proposals(proposals, ctx, first, hidden_names, stds)
+    if not first.support.any():
+        result = dataclasses.replace(result, doubts=result.doubts + (Doubt(
+            "no law", "no law was found: stage one kept no term of the library in any "
+            "equation (the derivatives it reads are too noisy, or too few samples per "
+            "oscillation, to show one); the data are described as constant"),))
     notes = use.dropped
     if hidden_names is not None and len(hidden_names) != len(result.hidden_names):
         notes += (f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "

@@ -81,7 +81,8 @@ def build(p: Proposal, ctx: Context):
     obs_cols = [col(e) for e in ctx.feature_exprs]
     closure_states = (["g0"] if p.order == 2 else []) + hidden[:st.n_hidden] + obs
     closure_cols = [col(e) for e in feature_expressions(
-        p.closure.library, list(p.closure.feature_names), closure_states)]
+        p.closure.library, list(p.closure.feature_names), closure_states)] \
+        if len(p.closure.coef) else []  # no hidden state: nothing to close
     loads = [(i, col(sym[hidden[a]] * ctx.feature_exprs[k]), a, k)
              for i in range(len(obs)) for k in range(st.support.shape[1])
              for a in range(st.n_hidden) if st.loadings[i, k, a] != 0]

@@ -248,11 +248,55 @@ def test_max_hidden_must_be_a_positive_integer():
         discover_hidden(data.x[:, :1], t=data.t, max_hidden=1.5, verbose=False)
 
 
-def test_no_hidden_variable_is_an_error():
+def test_nothing_hidden_is_an_answer():
+    """A fully observed oscillator needs no hidden state: the result has none, its law
+    is exact (noise-free data: to 1e-3) and it is confident."""
     data = systems.harmonic_oscillator(A=-2.0, B=1.0, n_times=600, t_end=20)
-    with pytest.raises(ValueError, match="No coefficient varies in time"):
-        discover_hidden(data.x, ps.PolynomialLibrary(degree=1, include_bias=False), t=data.t,
-                        verbose=False)
+    result = discover_hidden(data.x, ps.PolynomialLibrary(degree=1, include_bias=False),
+                             t=data.t, verbose=False)
+    assert result.hidden_names == () and result.hidden.shape == (600, 0)
+    assert result.confident, result.summary()
+    x0, x1 = sp.symbols("x0 x1", real=True)
+    truth = {"x0": {x1: -2.0}, "x1": {x0: 1.0}}  # xdot = A y, ydot = B x
+    for state, terms in truth.items():
+        found = result.equation(state)
+        assert set(found) == set(terms), (state, found)
+        for feature, value in terms.items():
+            assert abs(found[feature] / value - 1) < 1e-3, (state, feature, found[feature])
+
+
+def test_both_lotka_volterra_states_observed_at_one_percent_noise():
+    """Nothing hidden, 1% noise: zero hidden states, the exact law (coefficients to 1%),
+    confident; unrefined, the same structure, not confident (nothing was checked)."""
+    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000)
+    rng = np.random.default_rng(0)
+    x = data.x + 0.01 * data.x.std(axis=0) * rng.standard_normal(data.x.shape)
+    library = ps.PolynomialLibrary(degree=2)
+    result = discover_hidden(x, library, t=data.t, feature_names=["x", "y"], verbose=False)
+    assert result.hidden_names == () and result.confident, result.summary()
+    xs, ys = sp.symbols("x y", real=True)
+    truth = {"x": {xs: 1.0, xs * ys: -0.1}, "y": {ys: -1.5, xs * ys: 0.075}}
+    for state, terms in truth.items():
+        found = result.equation(state)
+        assert set(found) == set(terms), (state, found)
+        for feature, value in terms.items():
+            assert abs(found[feature] / value - 1) < 0.01, (state, feature, found[feature])
+    rough = discover_hidden(x, library, t=data.t, feature_names=["x", "y"], refine=False,
+                            verbose=False)
+    assert rough.hidden_names == () and not rough.confident
+    assert {s: set(rough.equation(s)) for s in "xy"} == {s: set(t) for s, t in truth.items()}
+    assert [d.kind for d in rough.doubts] == ["not checked"]
+
+
+def test_no_law_found_is_a_result_that_says_so():
+    """White noise: stage one keeps no term; the answer has no law (dx/dt = 0), is not
+    confident, and its doubt says why."""
+    x = np.random.default_rng(0).standard_normal((300, 1))
+    result = discover_hidden(x, ps.PolynomialLibrary(degree=2), t=0.1, verbose=False)
+    assert result.hidden_names == ()
+    assert not result.confident and result.rhs == {"x0": 0}
+    assert [d.kind for d in result.doubts] == ["no law"]
+    assert "stage one kept no term" in result.doubts[0]
 
 
 def test_bad_closure_library():

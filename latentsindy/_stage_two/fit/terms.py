@@ -238,8 +238,8 @@ class _Quadratic:
             self.g = g[:p] - a_ps @ x[:, p]
         else:
             self.a, self.g = a_pp, g[:p]
-        self.values = np.array([aug.coef[c] for c in self.cells])
-        self.current = np.array([bool(system.free[c]) for c in self.cells])
+        self.values = np.array([aug.coef[c] for c in self.cells], dtype=float)
+        self.current = np.array([bool(system.free[c]) for c in self.cells], dtype=bool)
 
     def predicted(self, keep):
         """Predicted misfit change when only ``keep`` (bool over cells) is free."""

@@ -85,3 +85,16 @@ def _derivative(series, t, edge=False):
     if edge:
         return rate, max(method.windows_, default=1) // 2
     return rate
+
+
+def without_hidden(support, ctx: Context) -> Proposal:
+    """The observed states closing on their own: stage one's terms with constant
+    coefficients (their integral-form fit), no hidden state and so no closure. Judged
+    like any proposal, it is the answer when nothing varies, and "no law found", with
+    its failed checks, when that constant-coefficient law does not reproduce the data."""
+    n_obs, n_feat = support.shape
+    structure = Structure(np.asarray(support, bool), np.zeros((n_obs, n_feat, 0)), ())
+    fit = fit_hidden(structure, ctx.thetas, ctx.observed, ctx.times, ctx.sigma, ctx.spacing)
+    closure = ClosureFit(np.zeros((0, 0)), (), ctx.closure_library, 0.0, [])
+    hidden = [np.zeros((len(t), 0)) for t in ctx.times]
+    return Proposal(structure, fit, closure, hidden, 1, "no hidden state")
