@@ -243,11 +243,11 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
     else:
         stds = {ij: first.std[:, ij[0], ij[1]] for ij in index}
         result = from_proposals(proposals, ctx, first, hidden_names, stds)
-    if not first.support.any():
+    if not any(term.value != 0 for term in result.terms):
         result = dataclasses.replace(result, doubts=result.doubts + (Doubt(
-            "no law", "no law was found: stage one kept no term of the library in any "
-            "equation (the derivatives it reads are too noisy, or too few samples per "
-            "oscillation, to show one); the data are described as constant"),))
+            "no law", "no law was found: no term of the library was kept in any equation "
+            "(the derivatives are too noisy, or the samples too few per oscillation, to "
+            "show one); the data are described as constant"),))
     notes = use.dropped
     if hidden_names is not None and len(hidden_names) != len(result.hidden_names):
         notes += (f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "

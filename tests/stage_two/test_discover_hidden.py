@@ -289,14 +289,14 @@ def test_both_lotka_volterra_states_observed_at_one_percent_noise():
 
 
 def test_no_law_found_is_a_result_that_says_so():
-    """White noise: stage one keeps no term; the answer has no law (dx/dt = 0), is not
+    """White noise: no term is kept; the answer has no law (dx/dt = 0), is not
     confident, and its doubt says why."""
     x = np.random.default_rng(0).standard_normal((300, 1))
     result = discover_hidden(x, ps.PolynomialLibrary(degree=2), t=0.1, verbose=False)
     assert result.hidden_names == ()
     assert not result.confident and result.rhs == {"x0": 0}
     assert [d.kind for d in result.doubts] == ["no law"]
-    assert "stage one kept no term" in result.doubts[0]
+    assert "no term of the library was kept" in result.doubts[0]
 
 
 def test_bad_closure_library():
