@@ -120,7 +120,8 @@ def recordings(family, index, condition):
     if condition.startswith("panel"):
         n_rec = int(condition.split()[1].split("x")[0])
         period = _period(base.t, clean)
-        span = max(1, int(round(period / (base.t[1] - base.t[0]))))
+        # about one cycle each (a third of the run at most: one wave is a whole run)
+        span = min(max(11, int(round(period / (base.t[1] - base.t[0])))), len(clean) // 3)
         x = clean + 0.01 * std * rng.standard_normal(clean.shape)
         starts = np.sort(rng.choice(len(x) - span - 1, n_rec, replace=False))
         rows = [s + np.sort(rng.choice(span, 11, replace=False)) for s in starts]
