@@ -123,3 +123,19 @@ def test_discover_hidden_refuses_a_model_and_its_options_at_once(small_lv):
     with pytest.raises(TypeError, match="model must be a DynamicSINDy .* got dict"):
         discover_hidden(x, t=t, model={"library": None})
 
+
+
+def test_dynamic_sindy_repr_shows_what_differs_from_the_defaults():
+    assert repr(DynamicSINDy()) == "DynamicSINDy()"
+    model = DynamicSINDy(ps.PolynomialLibrary(degree=3), seed=3, verbose=False)
+    assert repr(model) == "DynamicSINDy(library=PolynomialLibrary(degree=3), verbose=False, seed=3)"
+
+
+def test_coefficient_series_repr_is_one_line_with_typed_doubts(lv):
+    _, result = lv
+    coefs = result.coefficients
+    text = repr(coefs)
+    assert "\n" not in text
+    assert text.startswith("CoefficientSeries(2000 times, 1 term, varying: x in dx/dt")
+    assert str(coefs) == coefs.summary()
+    assert all(isinstance(d, Doubt) and d.kind in Doubt.kinds() for d in coefs.doubts)

@@ -17,11 +17,12 @@ import pysindy as ps
 import torch
 
 from .._core import saving
+from .._core.doubt import read_doubts
 from .._core.library import fit_library
 from .._stage_one.assessment import Assessment
+from .._stage_one.coefficient_model import CoefficientModel
 from .._stage_one.estimator import DynamicSINDy, sample_positions
 from .._stage_one.sequential_model import SequentialCoefficientModel
-from .._stage_one.training import CoefficientModel
 from ..generators import build_generator, generator_class
 from .container import write
 
@@ -96,6 +97,7 @@ def save_model(model: DynamicSINDy, path) -> None:
     arrays |= {"exact_mean": exact.mean, "exact_sd": exact.sd, "exact_lower": exact.lower,
                "exact_upper": exact.upper}
     meta["doubts"] = list(exact.doubts)
+    meta["doubt_kinds"] = [getattr(d, "kind", "unspecified") for d in exact.doubts]
     write(path, json.dumps(meta, default=float), arrays)
 
 
@@ -147,7 +149,7 @@ def read_model(meta, arrays) -> DynamicSINDy:
     if "exact_mean" in arrays:
         est.assessment_ = Assessment(arrays["exact_mean"], arrays["exact_sd"],
                                      arrays["exact_lower"], arrays["exact_upper"],
-                                     tuple(str(d) for d in meta["doubts"]))
+                                     read_doubts(meta["doubts"], meta.get("doubt_kinds")))
     est.doubts_ = () if est.assessment_ is None else est.assessment_.doubts
     est.model_ = model
     return est

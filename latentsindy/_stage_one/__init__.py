@@ -8,9 +8,13 @@ The modules, in the order a fit runs them:
    generator (``latentsindy.generators``: timeVAE or dynamic HyperSINDy) and the exact
    model (``evidence``), and trains;
 2. ``training`` (timeVAE) or ``sequential`` with ``sequential_model`` and
-   ``sequential_options`` (HyperSINDy, window by window): the loss and the two phases,
-   support (pruning) then refit; ``flat_adam`` is timeVAE's optimiser (torch's Adam and
-   gradient clipping, the same arithmetic, on one flat buffer);
+   ``sequential_options`` (HyperSINDy, window by window): the two phases, support
+   (pruning) then refit, of ``coefficient_model`` (Xi(t) from the generator).
+   timeVAE's loss is defined once, in ``loss`` (its terms, weights and assembly; torch's
+   autograd evaluates it on a GPU); on a CPU ``numpy_step`` writes the step out in
+   numpy, its loss by ``numpy_loss`` on the samples or ``knot_loss`` on the decoder's
+   knots (the same loss, re-expressed); ``flat_adam`` is timeVAE's optimiser (torch's
+   Adam and gradient clipping, the same arithmetic, on one flat buffer);
 3. ``decisions``, between the phases: freezing variation that does not pay, restoring
    pruned terms the data still need, then adopting the exact model's structure;
 4. ``evidence``: the exact varying-coefficient model of the data (``vcm``: B-splines in

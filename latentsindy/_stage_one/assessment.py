@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._core.doubt import Doubt
 from .._core.timing import timed
 from .structure import LOG_PRIOR_ODDS, EquationChoice, penalised, same_structure
 
@@ -90,20 +91,23 @@ def assess(exact, support, varying, choices, generator_mean, threshold, states, 
             lower[:, i] = np.minimum(lower[:, i], (om - BAND * os_) * scale[i])
             upper[:, i] = np.maximum(upper[:, i], (om + BAND * os_) * scale[i])
         for rival in rivals:
-            doubts.append(f"d{state}/dt: {_describe(rival, fit, features)} explains the data "
-                          f"as well (Bayes factor under 20): the structure is uncertain")
+            doubts.append(Doubt("rival structure",
+                                f"d{state}/dt: {_describe(rival, fit, features)} explains the "
+                                "data as well (Bayes factor under 20): the structure is "
+                                "uncertain"))
         for other in apart:
             gap = penalised(fit) - penalised(other)
-            doubts.append(f"d{state}/dt: the structure search from another start ended at "
+            doubts.append(Doubt("two optima",
+                          f"d{state}/dt: the structure search from another start ended at "
                           f"{_describe(other, fit, features)} (log Bayes factor "
                           f"{abs(gap):.0f} {'below' if gap >= 0 else 'above'}): the evidence "
-                          "has two optima, the structure is uncertain")
+                          "has two optima, the structure is uncertain"))
         if choice is not None and not same_structure(choice.fit, fit):
             gap = penalised(choice.fit) - penalised(fit)
             if gap > LOG_PRIOR_ODDS:
-                doubts.append(f"d{state}/dt: the exact model prefers "
+                doubts.append(Doubt("preferred structure", f"d{state}/dt: the exact model prefers "
                               f"{_describe(choice.fit, fit, features)} (log Bayes factor "
-                              f"{gap:.0f})")
+                              f"{gap:.0f})"))
         doubts += _equation_doubts(i, state, fit, exact, generator_mean, mean, sd, threshold,
                                    features, scale, generator_misfit)
     return Assessment(mean, sd, lower, upper, tuple(doubts))
@@ -141,18 +145,19 @@ def _equation_doubts(i, state, fit, exact, generator_mean, mean, sd, threshold, 
     out = []
     noise = exact.models[i].noise_variance  # the measurement noise (normalised)
     if np.isfinite(fit.noise_variance) and fit.noise_variance > MISFIT * noise:
-        out.append(f"d{state}/dt: the fitted equation leaves a misfit of "
+        out.append(Doubt("equation misfit", f"d{state}/dt: the fitted equation leaves a misfit of "
                    f"{fit.noise_variance / noise:.0f} times the measurement noise variance: "
-                   "a term the library lacks, or a state that is not observed")
+                   "a term the library lacks, or a state that is not observed"))
     if generator_misfit is not None and generator_misfit[i] > 10.0:
-        out.append(f"d{state}/dt: the generator's derivative misfit is "
-                   f"{generator_misfit[i]:.0f} times the derivative noise variance")
+        out.append(Doubt("generator misfit", f"d{state}/dt: the generator's derivative misfit is "
+                   f"{generator_misfit[i]:.0f} times the derivative noise variance"))
     for k in fit.support:
         size = float(np.mean(np.abs(mean[:, i, k]))) / abs(scale[i, k])
         if size < NEAR_THRESHOLD * threshold:
-            out.append(f"d{state}/dt: {features[k]} explains only {size:.1%} of its equation "
+            out.append(Doubt("small term",
+                       f"d{state}/dt: {features[k]} explains only {size:.1%} of its equation "
                        f"(threshold {threshold:.0%}): a small change of the threshold "
-                       "changes the support")
+                       "changes the support"))
     for k in fit.varying:
         gen, ex = generator_mean[:, i, k], mean[:, i, k]
         if np.std(ex) < threshold * abs(scale[i, k]):  # no material variation to compare
@@ -160,9 +165,10 @@ def _equation_doubts(i, state, fit, exact, generator_mean, mean, sd, threshold, 
         agree = 1.0 - np.sum((gen - ex) ** 2) / max(float(np.sum((ex - ex.mean()) ** 2)),
                                                       1e-300)
         if agree < AGREE:
-            out.append(f"d{state}/dt: the generator's coefficient of {features[k]} disagrees "
+            out.append(Doubt("generator disagreement",
+                       f"d{state}/dt: the generator's coefficient of {features[k]} disagrees "
                        f"with the exact model's (R^2 {agree:.2f} against it): one of them "
-                       "misreads the variation; the band holds both")
+                       "misreads the variation; the band holds both"))
     return out
 
 

@@ -7,10 +7,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
+from .._core.doubt import as_doubts
 from .figures import plot_coefficients
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class CoefficientSeries:
     """Time-varying SINDy coefficients with uncertainty, in physical units.
 
@@ -45,8 +46,8 @@ class CoefficientSeries:
         ``doubts``), nor white noise carried by the coefficients themselves
         (:meth:`DynamicSINDy.coefficient_noise`). Elsewhere (baselines, files
         without it): mean +- 2 ``std``.
-    doubts : tuple of str
-        Checks the fit failed, in words (empty: none).
+    doubts : tuple of Doubt
+        Checks the fit failed, each a kind and a sentence (empty: none).
     """
 
     times: np.ndarray
@@ -62,6 +63,25 @@ class CoefficientSeries:
     lower: np.ndarray
     upper: np.ndarray
     doubts: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        object.__setattr__(self, "doubts", as_doubts(self.doubts))
+
+    def __repr__(self) -> str:
+        varying = [f"{f} in d{s}/dt" for s, f in self.varying_terms()]
+        doubts = f", {len(self.doubts)} doubt{'s' if len(self.doubts) > 1 else ''}" \
+            if self.doubts else ""
+        n = len(self.active_terms())
+        return (f"CoefficientSeries({len(self.times)} times, {n} term{'s' if n != 1 else ''}, "
+                f"varying: {', '.join(varying) or 'none'}{doubts})")
+
+    def __str__(self) -> str:
+        return self.summary()
+
+    def varying_terms(self) -> list[tuple[str, str]]:
+        """(state, feature) of every term allowed to vary in time."""
+        return [(self.state_names[i], self.feature_names[j])
+                for i, j in zip(*np.nonzero(self.time_varying & self.support), strict=True)]
 
     @classmethod
     def from_samples(cls, times, mean, samples, state_names, feature_names, support,
@@ -80,7 +100,7 @@ class CoefficientSeries:
             a.setflags(write=False)
         t, m, s, smp, sup, tv, n1, n2, lo, hi = arrays
         return cls(t, m, s, smp, tuple(state_names), tuple(feature_names), sup, tv, n1, n2,
-                   lo, hi, tuple(str(d) for d in doubts))
+                   lo, hi, as_doubts(doubts))
 
     @property
     def half_width(self) -> np.ndarray:

@@ -14,9 +14,11 @@ from .._core import validation as val
 from .._core.derivatives import differentiate, noise_level
 from .._core.library import check_library, fit_library
 from .._core.local_fits import positions as time_positions
+from .._core.reprs import estimator_repr
 from .._core.timing import timed
 from ..generators import build_generator, generator_class
 from .assessment import assess
+from .coefficient_model import CoefficientModel, least_squares_constants
 from .coefficients import CoefficientSeries
 from .decisions import adopt_structure
 from .evidence import VaryingCoefficients
@@ -26,13 +28,7 @@ from .sequential import (
     train_sequential,
     windowed_constants,
 )
-from .training import (
-    CoefficientModel,
-    TrainingOptions,
-    least_squares_constants,
-    make_training_options,
-    train,
-)
+from .training import TrainingOptions, make_training_options, train
 
 
 class DynamicSINDy:
@@ -251,6 +247,9 @@ class DynamicSINDy:
     def get_params(self, deep=True):
         """Constructor parameters (scikit-learn convention)."""
         return {k: getattr(self, k) for k in _PARAMS}
+
+    def __repr__(self) -> str:
+        return estimator_repr(self, self.get_params())
 
     def set_params(self, **params):
         """Set constructor parameters; unknown names are an error."""

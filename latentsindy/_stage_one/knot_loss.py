@@ -20,9 +20,10 @@ samples per knot interval every term of the loss is a fixed function of the knot
 * the mean magnitude ``mean_t |xi_t|`` is summed per knot interval over its samples
   (a padded table of their interpolation weights).
 
-The values are :func:`.training.loss_terms`' (the same definitions, not an
-approximation): tests hold each term and its gradient to the samples' formulas in
-float64, and the numpy step's gradients to autograd's.
+The values are those of :mod:`.loss` (the same definitions and shares, not an
+approximation): tests hold each term and its gradient to the samples' formulas and to
+:func:`.loss.loss_terms` in float64, and the numpy step's gradients to autograd's. The
+arithmetic runs in the data's precision (float32 in training).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import numpy as np
 import scipy.sparse as sparse
 
 from ..generators._knots import curve_rows, interpolation, knot_grid, step_pairs
+from .loss import BEND_SHARE, TV_SHARE
 
 _CHUNK = 8192  # samples per block when the misfit's matrix is built
 
@@ -40,12 +42,14 @@ class KnotLoss:
 
     Parameters
     ----------
-    theta : (B, T, F) float32 array, xdot, weights : (B, T, n) float32 arrays
+    theta : (B, T, F) array, xdot, weights : (B, T, n) arrays
+        In one precision (float32 in training), the knots' too.
     n_knots : int
     """
 
     def __init__(self, theta, xdot, weights, n_knots):
         n_traj, n_times, n_features = theta.shape
+        self.dtype = theta.dtype
         n_states = xdot.shape[-1]
         left, frac = knot_grid(n_times, n_knots)
         self.n_times = n_times
@@ -63,8 +67,8 @@ class KnotLoss:
         # the samples of each interval, padded: their weights on the interval's right knot
         counts = np.bincount(left, minlength=n_knots - 1)
         width = int(counts.max())
-        self.share = np.zeros((width, n_knots - 1), np.float32)
-        self.valid = np.zeros((width, n_knots - 1), np.float32)
+        self.share = np.zeros((width, n_knots - 1), self.dtype)
+        self.valid = np.zeros((width, n_knots - 1), self.dtype)
         slot = np.arange(n_times) - np.concatenate([[0], np.cumsum(counts)])[left]
         self.share[slot, left] = frac
         self.valid[slot, left] = 1.0
@@ -118,25 +122,25 @@ class KnotLoss:
         c1, w1, c2, w2 = step_pairs(left, frac)
         across = w2 != 0
         self.inside64 = np.bincount(c1[~across], weights=w1[~across], minlength=n_knots - 1)
-        self.inside = self.inside64.astype(np.float32)
-        self.u = np.zeros(n_knots - 2, np.float32)  # at knots 1 .. K - 2
-        self.v = np.zeros(n_knots - 2, np.float32)
+        self.inside = self.inside64.astype(self.dtype)
+        self.u = np.zeros(n_knots - 2, self.dtype)  # at knots 1 .. K - 2
+        self.v = np.zeros(n_knots - 2, self.dtype)
         self.u[c2[across] - 1], self.v[c2[across] - 1] = w1[across], w2[across]
         _, k, a, b = curve_rows(left, frac, n_knots)
         per_knot = np.bincount(k - 1, minlength=n_knots - 2)
         slot = np.arange(len(k)) - np.concatenate([[0], np.cumsum(per_knot)])[k - 1]
-        self.a = np.zeros((max(int(per_knot.max(initial=0)), 1), n_knots - 2), np.float32)
+        self.a = np.zeros((max(int(per_knot.max(initial=0)), 1), n_knots - 2), self.dtype)
         self.b = np.zeros_like(self.a)
         self.a[slot, k - 1], self.b[slot, k - 1] = a, b
 
     def misfit(self, xi):
-        """Mean weighted squared misfit and its gradient by ``xi`` (K, n, F) float32."""
+        """Mean weighted squared misfit and its gradient by ``xi`` (K, n, F)."""
         if self.on_samples:
             return self._misfit_on_samples(xi)
         x = xi.astype(np.float64).ravel()
         g = self.gram @ x - self.cross  # G x - c
         total = float(x @ g) - float(self.cross @ x) + self.base  # x'Gx - 2c'x + base
-        grad = ((2.0 / self.count) * g).astype(np.float32).reshape(xi.shape)
+        grad = ((2.0 / self.count) * g).astype(self.dtype).reshape(xi.shape)
         return max(total, 0.0) / self.count, grad  # (an exact fit can round below 0)
 
     def _misfit_on_samples(self, xi):
@@ -147,30 +151,30 @@ class KnotLoss:
         resid = np.einsum("btf,tnf->btn", self.theta, xi_t) - self.xdot
         wr = self.weights * resid
         mse = float(np.mean(wr * resid))
-        g = np.einsum("btn,btf->tnf", wr * np.float32(2.0 / resid.size), self.theta)
+        g = np.einsum("btn,btf->tnf", wr * self.dtype.type(2.0 / resid.size), self.theta)
         grad = np.asarray(self.to_knots @ g.reshape(g.shape[0], -1))
         return mse, grad.reshape(xi.shape)
 
-    def roughness(self, xi, tv_share):
-        """:func:`.training.roughness` of the samples per term (n, F), from the knots'
+    def roughness(self, xi):
+        """:func:`.loss.roughness` of the samples per term (n, F), from the knots'
         values ``xi`` (K, n, F), and its gradient by them."""
-        n_times = self.n_times
+        n_times, real = self.n_times, self.dtype.type
         flat = np.ascontiguousarray(xi.reshape(xi.shape[0], -1).T)  # (nF, K): time last
         diff = flat[:, 1:] - flat[:, :-1]  # (nF, K - 1)
         before, after = diff[:, :-1], diff[:, 1:]  # d_{k-1}, d_k at knots 1 .. K - 2
         curve = self.a[:, None] * before + self.b[:, None] * after  # (rows per knot, nF, K - 2)
         across = self.u * before + self.v * after
-        c2 = 0.5 / (n_times - 2)
-        c1 = tv_share / (n_times - 1)
+        c2 = BEND_SHARE / (n_times - 2)
+        c1 = TV_SHARE / (n_times - 1)
         second = np.abs(curve).sum(axis=(0, 2), dtype=np.float64)
         first = np.abs(diff) @ self.inside64 + np.abs(across).sum(axis=1, dtype=np.float64)
-        value = (c2 * second + c1 * first).astype(np.float32)
+        value = (c2 * second + c1 * first).astype(self.dtype)
         s_curve, s_across = np.sign(curve), np.sign(across)
-        g_diff = np.float32(c1) * self.inside * np.sign(diff)
-        g_diff[:, :-1] += (np.float32(c2) * (self.a[:, None] * s_curve).sum(axis=0)
-                           + np.float32(c1) * self.u * s_across)
-        g_diff[:, 1:] += (np.float32(c2) * (self.b[:, None] * s_curve).sum(axis=0)
-                          + np.float32(c1) * self.v * s_across)
+        g_diff = real(c1) * self.inside * np.sign(diff)
+        g_diff[:, :-1] += (real(c2) * (self.a[:, None] * s_curve).sum(axis=0)
+                           + real(c1) * self.u * s_across)
+        g_diff[:, 1:] += (real(c2) * (self.b[:, None] * s_curve).sum(axis=0)
+                          + real(c1) * self.v * s_across)
         grad = np.empty_like(flat)
         grad[:, 0] = -g_diff[:, 0]
         grad[:, 1:-1] = g_diff[:, :-1] - g_diff[:, 1:]
@@ -186,7 +190,7 @@ class KnotLoss:
         sign = np.sign(values)
         sign *= self.valid
         total = (values * sign).reshape(flat.shape[0], -1).sum(axis=1, dtype=np.float64)
-        size = (total / self.n_times).astype(np.float32)
+        size = (total / self.n_times).astype(self.dtype)
         on_right = (sign * self.share).sum(axis=1)  # (nF, K - 1)
         on_left = sign.sum(axis=1) - on_right
         grad = np.empty_like(flat)

@@ -3,14 +3,15 @@
 On a CPU, a training step of stage one on a few thousand samples is mostly framework
 overhead: the autograd engine and a few hundred small torch operations of a few
 microseconds each, around kernels that take about a millisecond in all. Here the
-same model and loss (:func:`.training.loss_terms` of a :class:`.training.CoefficientModel`
-around a :class:`~latentsindy.generators.timevae.TimeVAE`) are evaluated and
-differentiated by hand in numpy, in float32, on views of the parameters' own storage:
-the gradients are written into each parameter's ``.grad``, the optimiser is unchanged,
-and torch's random stream draws the latent noise as before. The arithmetic is the
-model's, rounded differently (a test holds the gradients to autograd's); the model
-itself stays a torch module (pruning, the decisions between phases, sampling and
-saving use it as before).
+same model and loss (:func:`.loss.loss_terms` of a
+:class:`.coefficient_model.CoefficientModel` around a
+:class:`~latentsindy.generators.timevae.TimeVAE`) are evaluated and differentiated by
+hand in numpy (the loss by :class:`.numpy_loss.NumpyLoss`), in float32, on views of the
+parameters' own storage: the gradients are written into each parameter's ``.grad``, the
+optimiser is unchanged, and torch's random stream draws the latent noise as before. The
+arithmetic is the model's, rounded differently (a test holds the gradients to
+autograd's); the model itself stays a torch module (pruning, the decisions between
+phases, sampling and saving use it as before).
 
 The convolutions run as matrix products over unrolled windows; the exact GELU's error
 function is torch's (vectorised), on the same memory. On a uniform grid with at least
@@ -30,7 +31,10 @@ from torch import nn
 
 from ..generators._knots import applies, interpolation, knot_grid
 from ..generators.timevae import _BASE, TimeVAE
+from .coefficient_model import CoefficientModel
 from .knot_loss import KnotLoss
+from .loss import relative_spacing
+from .numpy_loss import NumpyLoss, time_mean
 
 _INV_SQRT2 = np.float32(1.0 / math.sqrt(2.0))
 _INV_SQRT_2PI = np.float32(1.0 / math.sqrt(2.0 * math.pi))
@@ -39,11 +43,9 @@ _LOGVAR_RANGE = (-12.0, 6.0)  # TimeVAE.encode's clamp
 
 def supported(model, *data) -> bool:
     """Whether :class:`NumpyStep` can train ``model`` on the tensors ``data``: a
-    :class:`.training.CoefficientModel` around a timeVAE whose encoder reads the series
-    at the decoder's resolution, every parameter trained, everything in float32 on a
-    CPU. Anything else trains with autograd."""
-    from .training import CoefficientModel
-
+    :class:`.coefficient_model.CoefficientModel` around a timeVAE whose encoder reads
+    the series at the decoder's resolution, every parameter trained, everything in
+    float32 on a CPU. Anything else trains with autograd."""
     tensors = [*model.parameters(), *data]
     return (type(model) is CoefficientModel and type(model.generator) is TimeVAE
             and model.generator.encoder_points is not None
@@ -107,18 +109,6 @@ class _Conv:
         return padded[:, :, self.pad:self.pad + self.n_in]
 
 
-def _time_mean(a):
-    """Mean over the first axis (time), accumulated in float64, as one matrix-vector
-    product (numpy's own reduction over the rows of a (T, few) array loops over T short
-    rows). The precision matters: a constant's gradient is such a sum, of terms that
-    cancel near the optimum, and Adam scales whatever is left, rounding included, to a
-    full step (float32 accumulation cost a structure on a driven oscillator at 10%
-    noise that torch's cascade sums find)."""
-    ones = np.full(a.shape[0], 1.0 / a.shape[0])
-    return (ones @ a.reshape(a.shape[0], -1).astype(np.float64)).reshape(
-        a.shape[1:]).astype(np.float32)
-
-
 def _upsample(x):
     """Linear upsampling by two (align_corners=False) along the last axis."""
     out = np.empty((*x.shape[:-1], 2 * x.shape[-1]), dtype=np.float32)
@@ -162,11 +152,7 @@ class NumpyStep:
     def __init__(self, model, theta, xdot, weights, inputs, noise_var, threshold, free_rows):
         gen = model.generator
         self.model, self.gen = model, gen
-        self.theta = theta.numpy()  # (B, T, F)
-        self.xdot = xdot.numpy()  # (B, T, n)
-        self.weights = weights.numpy()
-        self.noise_var, self.threshold = float(noise_var), float(threshold)
-        self.free = free_rows.numpy().astype(np.float32)
+        theta, xdot, weights = theta.numpy(), xdot.numpy(), weights.numpy()
         n_states, n_features = model.constants.shape
         self.shape = (n_states, n_features)
         with torch.no_grad():
@@ -183,19 +169,20 @@ class NumpyStep:
             if isinstance(layer, nn.Conv1d):
                 length *= 2  # each follows an upsampling by two
                 self.ups.append(_Conv(layer, length))
-        self.n_times = self.theta.shape[1]
-        uniform = gen.positions is None or len(gen.positions) != self.n_times  # no spacing
+        n_times = theta.shape[1]
+        uniform = gen.positions is None or len(gen.positions) != n_times  # no spacing
         # the loss on the knots where it is the samples' loss (knot_loss.py); else on
         # the samples, read from the knots by a sparse interpolation
-        self.on_knots = (KnotLoss(self.theta, self.xdot, self.weights, length)
-                         if applies(self.n_times, length, uniform) else None)
+        self.on_knots = (KnotLoss(theta, xdot, weights, length)
+                         if applies(n_times, length, uniform) else None)
         self.interp = self.interp_t = None
         if self.on_knots is None:
-            self.interp, self.interp_t = _interpolation(gen, length, self.n_times)
-        self.spacing = None
+            self.interp, self.interp_t = _interpolation(gen, length, n_times)
+        spacing = None
         if gen.spacing is not None:
-            h = (gen.spacing / gen.spacing.mean()).clamp_min(1e-3).numpy().astype(np.float32)
-            self.spacing = h[:, None, None]
+            spacing = relative_spacing(gen.spacing).numpy().astype(np.float32)
+        self.loss = NumpyLoss(theta, xdot, weights, noise_var, threshold, free_rows.numpy(),
+                              spacing, self.on_knots)
         self.linears = {name: (m.weight.detach().numpy(), m.bias.detach().numpy(),
                                m.weight.grad.numpy(), m.bias.grad.numpy())
                         for name, m in (("to_latent", gen.to_latent),
@@ -204,13 +191,10 @@ class NumpyStep:
         self.constants = model.constants.detach().numpy()
         self.constants_grad = model.constants.grad.numpy()
         self._grad_owner = model.constants.grad
-        from .training import TV_SHARE  # here: training imports this module
-
-        self.tv_share = TV_SHARE
 
     def __call__(self, l1_weight, rough_weight, kl_weight, rough_scaled):
-        """Loss terms (as :func:`.training.loss_terms`, floats); the gradient of
-        :func:`.training.total_loss` with these weights is written."""
+        """Loss terms (as :func:`.loss.loss_terms`, floats); the gradient of
+        :func:`.loss.total_loss` with these weights is written."""
         if self.model.constants.grad is not self._grad_owner:
             raise RuntimeError("NumpyStep: the parameters' gradients have new storage (a new "
                                "optimiser); make a new NumpyStep for it.")
@@ -219,14 +203,12 @@ class NumpyStep:
         std = np.exp(0.5 * logvar)
         z = mu + eps * std
         series, decoder_parts = self._decode(z)
-        terms, grad_series, grad_const = self._loss(series, l1_weight, rough_weight,
-                                                    rough_scaled)
         kl = 0.5 * float(np.sum(mu * mu + np.exp(logvar) - 1.0 - logvar))
-        kl_scale = 2.0 * self.noise_var / self.xdot.size
-        terms = {"mse": terms.pop("mse"), "kl": kl_scale * kl, **terms}  # loss_terms' order
+        terms, grad_series, grad_const, grad_kl = self._loss(
+            series, kl, l1_weight, rough_weight, kl_weight, rough_scaled)
         self.constants_grad[...] = grad_const
         grad_z = self._decode_backward(grad_series, decoder_parts)
-        c = np.float32(kl_weight * kl_scale)
+        c = np.float32(grad_kl)
         grad_mu = grad_z + c * mu
         grad_logvar = grad_z * eps * 0.5 * std + c * 0.5 * (np.exp(logvar) - 1.0)
         grad_logvar *= (raw_logvar >= _LOGVAR_RANGE[0]) & (raw_logvar <= _LOGVAR_RANGE[1])
@@ -306,7 +288,9 @@ class NumpyStep:
         return w.T @ grad_a
 
     # -- loss ------------------------------------------------------------------------
-    def _loss(self, series, l1_weight, rough_weight, rough_scaled):
+    def _loss(self, series, kl, l1_weight, rough_weight, kl_weight, rough_scaled):
+        """The loss of the model's coefficients (:class:`.numpy_loss.NumpyLoss`), and its
+        gradient by the generator's series and by the constants."""
         model = self.model
         n_states, n_features = self.shape
         support = model.support.numpy().astype(np.float32)
@@ -317,71 +301,9 @@ class NumpyStep:
         # (T, n, F) on the samples, (n_knots, n, F) on the knots; in the model's order of
         # operations (the samples' second differences cancel: a different rounding shows)
         xi = support * (const + varying * series.reshape(-1, n_states, n_features))
-        if self.on_knots is not None:  # xi (n_knots, n, F): the knots' values
-            mse, grad_xi = self.on_knots.misfit(xi)
-            size, sign = self.on_knots.magnitude(xi)
-            size = size * support
-            rough_raw, grad_rough = self.on_knots.roughness(xi, self.tv_share)
-        else:  # xi (T, n, F): the samples'
-            pred = np.einsum("btf,tnf->btn", self.theta, xi)
-            resid = pred - self.xdot
-            wr = self.weights * resid
-            mse = float(np.mean(wr * resid))
-            grad_pred = wr * np.float32(2.0 / resid.size)
-            grad_xi = np.einsum("btn,btf->tnf", grad_pred, self.theta)
-            sign = np.sign(xi)
-            size = _time_mean(np.abs(xi)) * support
-            rough_raw, grad_rough = self._roughness(xi)
-
-        n_times = self.n_times
-        n_active = max(float(support.sum()), 1.0)
-        mean_abs = float(size.sum()) / n_active
-        rough_norm = 1.0 / (n_active * max(mean_abs, self.threshold))
-        rough = float((rough_raw * support).sum()) * rough_norm
-        bayes = self.noise_var * n_times * n_active / self.xdot.shape[-1]
-        rough_bayes = min(1.0, max(0.01, bayes))
-        l1 = float((self.threshold * np.log1p(size / self.threshold)
-                    * self.free[:, None]).sum())
-
-        c_rough = rough_weight * (rough_bayes if rough_scaled else 1.0) * rough_norm
-        grad_size = (l1_weight * self.free[:, None] / (1.0 + size / self.threshold)) * support
-        grad_xi += sign * (grad_size / n_times).astype(np.float32)
-        grad_xi += grad_rough * (np.float32(c_rough) * support)
+        terms, grad_xi, grad_kl = self.loss(xi, support, kl, l1_weight, rough_weight,
+                                            kl_weight, rough_scaled)
         grad_series = (grad_xi * mask).reshape(xi.shape[0], -1)
         # sum_t dL/dxi_t, which on the knots is their sum (each sample's weights sum to 1)
-        grad_const = np.where(pinned, 0.0, _time_mean(grad_xi) * (xi.shape[0] * support))
-        terms = {"mse": mse, "l1": l1, "rough": rough, "rough_bayes": rough_bayes}
-        return terms, grad_series, grad_const
-
-    def _roughness(self, xi):
-        """:func:`.training.roughness` per term, and its gradient by ``xi``."""
-        n_times = xi.shape[0]
-        if n_times < 3:
-            return np.zeros(xi.shape[1:], np.float32), np.zeros_like(xi)
-        first = xi[1:] - xi[:-1]
-        grad = np.zeros_like(xi)
-        if self.spacing is None:
-            curve = xi[2:] - 2 * xi[1:-1] + xi[:-2]
-            g2 = np.sign(curve) * np.float32(0.5 / (n_times - 2))
-            grad[2:] += g2
-            grad[1:-1] -= 2 * g2
-            grad[:-2] += g2
-            second = np.abs(curve)
-        else:
-            h = self.spacing
-            slope = first / h
-            change = slope[1:] - slope[:-1]
-            width = h[1:] + h[:-1]
-            second = np.abs(2 * change / width) * (width / 2)
-            g_slope = np.zeros_like(slope)
-            g2 = np.sign(change) * np.float32(0.5 / (n_times - 2))
-            g_slope[1:] += g2
-            g_slope[:-1] -= g2
-            g_first = g_slope / h
-            grad[1:] += g_first
-            grad[:-1] -= g_first
-        g1 = np.sign(first) * np.float32(self.tv_share / (n_times - 1))
-        grad[1:] += g1
-        grad[:-1] -= g1
-        value = 0.5 * _time_mean(second) + self.tv_share * _time_mean(np.abs(first))
-        return value, grad
+        grad_const = np.where(pinned, 0.0, time_mean(grad_xi) * (xi.shape[0] * support))
+        return terms, grad_series, grad_const, grad_kl

@@ -8,7 +8,7 @@ one window to the next and detached (truncated backpropagation through time), so
 memory is set by the window, not by the series length (the per-chunk latent offsets,
 25 numbers per 10 steps, are the only per-sample parameters; a step updates its
 window's rows only). The loss is the one of
-:mod:`.training` (derivative misfit, KL in ELBO units, sparsity, normalised
+:mod:`.loss` (derivative misfit, KL in ELBO units, sparsity, normalised
 roughness) with the paper's HyperSINDy choices: relaxed-L0 (hard-concrete)
 gates, a KL weight warmed up from ``kl_start``, AdamW with amsgrad and an exponential
 learning-rate decay.

@@ -9,7 +9,8 @@ import torch
 from torch import nn
 
 from ..generators.hypersindy import chunk_centres, interpolate_at, interpolate_chunks
-from .training import CoefficientModel, least_squares_constants, roughness
+from .coefficient_model import CoefficientModel, least_squares_constants
+from .loss import roughness
 
 # hard-concrete gate constants (Louizos et al. 2018)
 _BETA, _GAMMA, _ZETA = 2.0 / 3.0, -0.1, 1.1

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from latentsindy._stage_one.knot_loss import KnotLoss
-from latentsindy._stage_one.training import roughness
+from latentsindy._stage_one.loss import roughness
 from latentsindy.generators._knots import applies, curve_rows, knot_grid
 
 
@@ -43,7 +43,7 @@ def test_terms_equal_the_samples(n_times, n_knots, n_traj, f):
     assert got == pytest.approx(mse, rel=1e-10 if not loss.on_samples else 1e-5)
     size, _ = loss.magnitude(xi)
     np.testing.assert_allclose(size, np.abs(on_samples).mean(axis=0), rtol=1e-5)
-    value, _ = loss.roughness(xi, 0.5)
+    value, _ = loss.roughness(xi)
     first = np.abs(np.diff(on_samples, axis=0)).mean(axis=0)
     second = np.abs(np.diff(on_samples, 2, axis=0)).sum(axis=0) / (n_times - 2)
     np.testing.assert_allclose(value, 0.5 * second + 0.5 * first, rtol=1e-5)
@@ -72,7 +72,7 @@ def test_gradients_equal_autograd_on_the_samples(n_times, n_knots, n_traj, n_fea
         "roughness": roughness(track[None]).sum(),
     }
     ours = {"misfit": loss.misfit(xi)[1], "magnitude": loss.magnitude(xi)[1],
-            "roughness": loss.roughness(xi, 0.5)[1]}
+            "roughness": loss.roughness(xi)[1]}
     for name, reference in references.items():
         (expected,) = torch.autograd.grad(reference, knots, retain_graph=True)
         np.testing.assert_allclose(ours[name], expected.numpy(), rtol=1e-4,

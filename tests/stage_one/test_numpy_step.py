@@ -4,10 +4,11 @@ import numpy as np
 import pytest
 import torch
 
+from latentsindy._stage_one.coefficient_model import CoefficientModel
 from latentsindy._stage_one.estimator import sample_positions
 from latentsindy._stage_one.flat_adam import FlatAdam
+from latentsindy._stage_one.loss import loss_terms, total_loss
 from latentsindy._stage_one.numpy_step import NumpyStep, supported
-from latentsindy._stage_one.training import CoefficientModel, loss_terms, total_loss
 from latentsindy.generators.timevae import TimeVAE, TimeVAEOptions
 
 

@@ -6,13 +6,14 @@ import pytest
 import torch
 from torch import nn
 
+from latentsindy._stage_one.coefficient_model import CoefficientModel
 from latentsindy._stage_one.decisions import (
     freeze_constant_terms,
     restore_absorbed_terms,
     restore_terms,
 )
 from latentsindy._stage_one.flat_adam import FlatAdam
-from latentsindy._stage_one.training import TV_SHARE, CoefficientModel, roughness
+from latentsindy._stage_one.loss import TV_SHARE, roughness
 
 
 class _Flat(nn.Module):
