@@ -1,4 +1,5 @@
 """Tutorial: a switching bistable model of a worm's brain (the seed paper's C. elegans case).
+==========================================================================================
 
 The first principal component x of whole-brain calcium imaging is modelled as
 ``xdot = y``, ``ydot = a x^3 + b x^2 + c x + d y + u(t)`` with only u varying (dynamic

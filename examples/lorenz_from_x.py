@@ -1,4 +1,5 @@
 """Tutorial: two hidden variables from one coordinate (Lorenz seen through x alone).
+=================================================================================
 
 Only x(t) of the Lorenz system is measured (1% noise); y and z are not. In
 ``xdot = sigma (y - x)`` the constant's coefficient varies in time: a first hidden

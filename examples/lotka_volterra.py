@@ -1,4 +1,5 @@
 """Tutorial: find the predator from prey counts alone (Lotka-Volterra).
+====================================================================
 
 Only the prey x is observed. Dynamic SINDy writes xdot = x * h(t); the hidden state
 h = alpha - beta * y is an affine image of the unmeasured predator y. Stage two closes

@@ -1,4 +1,5 @@
 """Tutorial: a coefficient that drifts becomes a state with its own law (oscillator).
+==================================================================================
 
 xdot = A y, ydot = B(t) x with A = -4 and B(t) a logistic sigmoid from 2 to 3. Both x
 and y are observed; B(t) is not. Dynamic SINDy finds that only B varies, turns it into

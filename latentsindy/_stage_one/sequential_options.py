@@ -42,7 +42,7 @@ class SequentialTrainingOptions:
         AdamW (amsgrad) step size and weight decay; the step size is multiplied by
         ``lr_decay`` after every optimiser step.
     threshold : float
-        Final pruning threshold on a term's mean |coefficient| over time (a share of
+        Final pruning threshold on a term's mean absolute coefficient over time (a share of
         its equation's RMS derivative), reached by a linear rise after the warm-up.
     warmup, ramp : float
         Fractions of phase one without pruning (with one latent per window, so the
@@ -51,7 +51,7 @@ class SequentialTrainingOptions:
         Weight of the relaxed-L0 penalty (expected number of active terms per
         equation) in phase one.
     l1 : float
-        Weight of the reweighted-L1 (log) penalty on each term's mean |Xi|, per
+        Weight of the reweighted-L1 (log) penalty on each term's mean absolute value of Xi, per
         equation, in phase one (as ``TrainingOptions.sparsity``).
     variation_sparsity : float
         Cost of letting a term vary in time (relaxed L0 on its variation gate, per

@@ -35,7 +35,7 @@ class TrainingOptions:
     learning_rate : float
         Adam's initial step size; a cosine schedule decays it within each phase.
     threshold : float
-        Final pruning threshold: a term whose mean |coefficient| over time explains
+        Final pruning threshold: a term whose mean absolute coefficient over time explains
         less than this fraction of its equation's RMS derivative is removed.
     prune_every : int
         Steps between pruning checks.

@@ -60,7 +60,7 @@ class WindowedSINDy:
     method : {"stlsq", "group"}
         Averaged-coefficient sequential thresholding, or group hard thresholding.
     threshold : float
-        Smallest normalised coefficient (mean |xi| over windows for ``"stlsq"``, RMS
+        Smallest normalised coefficient (mean absolute value over windows for ``"stlsq"``, RMS
         over windows for ``"group"``) a term may keep.
     max_iter : int
         Thresholding iterations (the supplement uses 100).

@@ -16,8 +16,10 @@ from torch import nn
 class Generator(nn.Module):
     """Base class: ``sample(inputs, n_samples)`` -> (series, kl).
 
-    Parameters of the call
-    ----------------------
+    A call ``sample(inputs, n_samples)`` takes these and returns the series and KL below.
+
+    Parameters
+    ----------
     inputs : Tensor, shape (n_trajectories, n_channels, n_times)
         Normalised states and derivatives of trajectories that share one set of
         time-varying dynamics.
