@@ -77,25 +77,25 @@ def test_a_dask_cluster_gives_the_local_results_and_keeps_them_when_a_worker_die
 
     t = recordings["worm1"][0]
     data = {k: x for k, (_, x) in recordings.items()}
-    data |= {"dies": data["worm1"][:100], "flat": np.ones_like(data["worm1"])}
+    data |= {"dies": data["worm1"][:100], "short": data["worm1"][:20]}  # 20: too few
     # Dask retries a task whose worker died (three times by default), then reports it
     # as KilledWorker
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                       dashboard_address=None) as cluster:
         runs = discover_many(data, DiesOnShortRecordings(degree=3, include_bias=False),
-                             t={"worm1": t, "worm2": t, "dies": t[:100], "flat": t},
+                             t={"worm1": t, "worm2": t, "dies": t[:100], "short": t[:20]},
                              scheduler=cluster.scheduler_address, out=tmp_path,
                              feature_names=["x"])
-    assert [r.name for r in runs] == ["worm1", "worm2", "dies", "flat"]
+    assert [r.name for r in runs] == ["worm1", "worm2", "dies", "short"]
     for run in runs[:2]:
         _same_as_alone(run, alone)
-    dies, flat = runs[2:]
+    dies, short = runs[2:]
     assert dies.result is None and dies.error.startswith("KilledWorker")
-    assert flat.result is None and flat.error.startswith("ValueError")
+    assert short.result is None and short.error.startswith("ValueError: No part of")
     # every run was written as it finished: its row (and its result, if any)
     with open(tmp_path / "runs.csv") as fh:
         rows = {r["name"]: r for r in csv.DictReader(fh)}
-    assert set(rows) == {"worm1", "worm2", "dies", "flat"}
+    assert set(rows) == {"worm1", "worm2", "dies", "short"}
     assert rows["dies"]["wall_s"] == "" and rows["worm2"]["hidden_states"] == "1"
     assert sorted(p.name for p in tmp_path.glob("*.npz")) == ["worm1.npz", "worm2.npz"]
     assert load(tmp_path / "worm1.npz").hidden_names == ("h0",)
