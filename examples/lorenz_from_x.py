@@ -17,6 +17,9 @@ and with ``dx/dt = h0 - sigma x`` (h0 = sigma y, h1 = sigma (rho - z)) it reads
 compares the found coefficients with whichever form was found.
 
 Run:  python examples/lorenz_from_x.py   (figure in examples/output/)
+
+.. image:: /figures/lorenz_from_x.png
+   :alt: both hidden states against the true y and z
 """
 
 from __future__ import annotations

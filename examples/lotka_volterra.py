@@ -7,6 +7,9 @@ the system (hdot = gamma*alpha - gamma*h - delta*alpha*x + delta*x*h), refines i
 integrating it against the prey counts, and checks the alternatives it considered.
 
 Run:  python examples/lotka_volterra.py   (figure in examples/output/)
+
+.. image:: /figures/lotka_volterra.png
+   :alt: the inferred predator against the truth, and the closed system against the prey
 """
 
 from __future__ import annotations

@@ -7,6 +7,9 @@ a hidden state, and stage two recovers its law: Bdot = -6 + 5B - B^2 (the paper 
 -5.875 + 4.903B - 0.981B^2).
 
 Run:  python examples/oscillator.py   (figure in examples/output/)
+
+.. image:: /figures/oscillator.png
+   :alt: the hidden coefficient B(t) and its law
 """
 
 from __future__ import annotations
