@@ -52,6 +52,7 @@ from _runner import run_all  # noqa: E402
 from _scoring import score_structure  # noqa: E402
 
 from latentsindy import discover_hidden  # noqa: E402
+from latentsindy._core.oscillation import crossing_periods  # noqa: E402
 
 DATA = Path(__file__).resolve().parent / "data"
 CONDITIONS = ("ar1 0.5", "ar1 0.9", "outliers 0.5%", "outliers 2%", "poisson", "8/cycle",
@@ -72,21 +73,9 @@ def _rng(condition, index):
 
 
 def _period(t, x):
-    """Mean time between upward crossings of the mean (hysteresis of a quarter std),
-    the shortest over the states; the span when nothing oscillates."""
-    best = t[-1] - t[0]
-    for col in np.atleast_2d(x.T):
-        c = (col - col.mean()) / max(float(col.std()), 1e-300)
-        ups, low = [], False
-        for k in np.flatnonzero(np.abs(c) > 0.25):
-            if c[k] < 0:
-                low = True
-            elif low:
-                ups.append(k)
-                low = False
-        if len(ups) >= 2:
-            best = min(best, float(np.mean(np.diff(t[ups]))))
-    return best
+    """The shortest crossing period over the states (the fastest oscillation); the span
+    when nothing oscillates."""
+    return min(crossing_periods(x, t), default=t[-1] - t[0])
 
 
 def recordings(family, index, condition):

@@ -75,9 +75,6 @@ class Doubt(str):
         """The sentence, as a plain ``str``."""
         return str.__str__(self)
 
-    def __str__(self) -> str:
-        return str.__str__(self)
-
     def __repr__(self) -> str:
         return f"Doubt({self.kind!r}, {self.message!r})"
 

@@ -17,7 +17,7 @@ import pysindy as ps
 import torch
 
 from .._core import saving
-from .._core.doubt import read_doubts
+from .._core.doubt import as_doubts, read_doubts
 from .._core.library import fit_library
 from .._stage_one.assessment import Assessment
 from .._stage_one.coefficient_model import CoefficientModel
@@ -97,7 +97,7 @@ def save_model(model: DynamicSINDy, path) -> None:
     arrays |= {"exact_mean": exact.mean, "exact_sd": exact.sd, "exact_lower": exact.lower,
                "exact_upper": exact.upper}
     meta["doubts"] = list(exact.doubts)
-    meta["doubt_kinds"] = [getattr(d, "kind", "unspecified") for d in exact.doubts]
+    meta["doubt_kinds"] = [d.kind for d in as_doubts(exact.doubts)]
     write(path, json.dumps(meta, default=float), arrays)
 
 

@@ -54,8 +54,7 @@ def save_result(result: HiddenDiscovery, path) -> None:
         "stage_one_states": list(result.coefficients.state_names),
         "stage_one_features": list(result.coefficients.feature_names),
         "stage_one_doubts": list(result.coefficients.doubts),
-        "stage_one_doubt_kinds": [getattr(d, "kind", "unspecified")
-                                  for d in result.coefficients.doubts],
+        "stage_one_doubt_kinds": [d.kind for d in result.coefficients.doubts],
         "n_trajectories": len(result.all_times),
         "data_use": None if result.data_use is None else {
             "recordings": result.data_use.recordings, "segments": result.data_use.segments,

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import inspect
 
 import numpy as np
 import pysindy as ps
@@ -141,8 +142,11 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     return dataclasses.replace(result, timings=dict(seconds))
 
 
-_STAGE_ONE_DEFAULTS = {"library": None, "generator": "timevae", "generator_options": None,
-                       "training": None, "differentiation_method": None, "support": None}
+# the stage-one options discover_hidden takes itself, with their defaults (its signature's)
+_STAGE_ONE_DEFAULTS = {
+    name: inspect.signature(discover_hidden).parameters[name].default
+    for name in ("library", "generator", "generator_options", "training",
+                 "differentiation_method", "support")}
 
 
 def _unset(name, value, model) -> bool:

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from ..._core.derivatives import noise_level
+from ..._core.oscillation import crossing_periods
 from ..._core.parallel import map_on
 from ..._core.timing import timed
 from ..context import NOISE_FLOOR
@@ -368,21 +369,11 @@ def cross_validate(problem: Problem, fit: Fit, max_iterations=10):
 
 
 def _dominant_period(observed, times):
-    """Mean time between upward crossings of the mean, with a hysteresis of a quarter
-    standard deviation so that noise makes no crossings (the longest over the states)."""
-    best = 0.0
-    for x, t in zip(observed, times, strict=True):
-        for col in np.asarray(x).T:
-            c = (col - col.mean()) / max(float(col.std()), 1e-300)
-            ups, low = [], False
-            for k in np.flatnonzero((c < -0.25) | (c > 0.25)):
-                if c[k] < 0:
-                    low = True
-                elif low:
-                    ups.append(k)
-                    low = False
-            if len(ups) >= 2:
-                best = max(best, float(np.mean(np.diff(t[ups]))))
+    """The longest crossing period over the states and trajectories
+    (:func:`latentsindy._core.oscillation.crossing_periods`); the first trajectory's
+    span when nothing oscillates."""
+    best = max((p for x, t in zip(observed, times, strict=True)
+                for p in crossing_periods(x, t)), default=0.0)
     return best if best > 0 else float(times[0][-1] - times[0][0])
 
 
