@@ -12,6 +12,7 @@ object can be passed instead.
 from __future__ import annotations
 
 import copy
+import math
 
 import numpy as np
 import pysindy as ps
@@ -44,6 +45,61 @@ def noise_level(x, t=None) -> np.ndarray:
     d = np.diff(x, n=4, axis=0)
     mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
     return 1.4826 * mad / np.sqrt(70.0)  # var of 4th difference of white noise = 70 sigma^2
+
+
+# Difference orders :func:`measurement_noise` compares, and the share below the 4th
+# order's estimate at which a higher order is believed instead (white noise gives the
+# same level at every order, within 10% on 60 samples).
+_ORDERS = (4, 6, 8, 10)
+_DROP = 0.7
+
+
+def measurement_noise(x, t=None) -> np.ndarray:
+    """:func:`noise_level`, with higher-order differences where the samples are few per
+    oscillation (uniform grids).
+
+    The 4th difference of a signal sampled ``m`` times per cycle keeps about
+    ``(2 pi / m)**4 / sqrt(70)`` of its amplitude: at 12 samples per cycle that is as
+    large as 1% noise (prey-only Lotka-Volterra: 0.31 estimated for 0.14 true), and the
+    noise level, the unit of every misfit and score, is then overestimated. The k-th
+    difference keeps ``(2 pi / m)**k / sqrt(C(2k, k))``, which shrinks with ``k`` above
+    about 3 samples per cycle, while white noise reads the same at every order. Where a
+    higher order reads below ``_DROP`` times the 4th, the signal shows in the 4th
+    and the lowest reading is taken (0.15 at 12 samples per cycle); on densely sampled
+    data every order agrees and the 4th is kept. Irregular times and lists of
+    recordings as in :func:`noise_level`."""
+    if isinstance(x, list | tuple):
+        times = [None] * len(x) if t is None else list(t)
+        if len(x) == 1:
+            return measurement_noise(x[0], times[0])
+        if any(_irregular(tk) for tk in times):
+            return noise_level(x, t)
+        levels = [_by_orders(np.asarray(xk, float)) for xk in x]
+        counts = np.array([len(xk) for xk in x], float)
+        base = noise_level(x, t)
+        ratio = np.sum([c * lv / np.maximum(noise_level(xk), 1e-300)
+                        for c, lv, xk in zip(counts, levels, x, strict=True)], axis=0)
+        return base * ratio / counts.sum()
+    if _irregular(t):
+        return noise_level(x, t)
+    return _by_orders(np.asarray(x, float))
+
+
+def _by_orders(x):
+    """Per column: the 4th-difference level, or the lowest higher-order one where it
+    reads below ``_DROP`` times that."""
+    levels = []
+    for k in _ORDERS:
+        if len(x) <= k + 8:
+            break
+        d = np.diff(x, n=k, axis=0)
+        mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+        levels.append(1.4826 * mad / np.sqrt(math.comb(2 * k, k)))
+    if not levels:
+        return noise_level(x)
+    levels = np.array(levels)
+    low = levels.min(axis=0)
+    return np.where(low < _DROP * levels[0], low, levels[0])
 
 
 def _irregular(t):

@@ -15,8 +15,8 @@ Grouped by what each part does, in the order :func:`discover_hidden` runs them:
   ``shooting``: multiple shooting; ``least_squares``: Levenberg-Marquardt; ``refine``:
   the fit and its held-out score; ``terms``: term selection on the integrated fit);
 * ``verdict`` and ``judge``: each proposal fitted, its terms selected, scored on
-  held-out segments; ``rank`` picks the sparsest system within one standard error of
-  the best; ``restate`` tries the winner written another way (``rewrite/``: a hidden
+  held-out segments; ``rank`` picks the sparsest system the held-out data do not
+  reject against the best; ``restate`` tries the winner written another way (``rewrite/``: a hidden
   state shifted by observed functions, ``gauge``; a state and its rate as one state
   with a first integral, ``first_integral``; a state that is a function of the
   observed ones, ``observed_function``);

@@ -18,7 +18,12 @@ import pysindy as ps
 
 from .._core import recordings
 from .._core import validation as val
-from .._core.derivatives import AdaptiveSavitzkyGolay, noise_level, window_capped
+from .._core.derivatives import (
+    AdaptiveSavitzkyGolay,
+    measurement_noise,
+    noise_level,
+    window_capped,
+)
 from .._core.doubt import Doubt
 from .._core.library import check_library, feature_expressions, fit_library
 from .._core.threads import single_thread
@@ -59,9 +64,11 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
     second hidden state. Each structure's hidden series is estimated, closed by sparse
     regression, refined by integrating the closed system against the observed data
     (multiple shooting, torchdiffeq), its terms selected stepwise on that fit, and
-    scored on held-out segments; the sparsest system within one standard error of the
-    best score wins. Structures with other hidden states that score as well are
-    reported as ``uncertain``, failed checks as ``doubts``; read ``confident``.
+    scored on held-out segments; the sparsest system that the held-out data do not
+    reject against the best score wins (within one standard error of it, or not worse
+    segment by segment). Structures with other hidden states that score as well (and
+    are no larger, or are favoured by the held-out data) are reported as
+    ``uncertain``, failed checks as ``doubts``; read ``confident``.
 
     Examples
     --------
@@ -270,7 +277,7 @@ def _context(model, trajs, times, names, first, closure_library, support):
     library = model.library_
     thetas = [np.asarray(a, dtype=float) for a in library.transform(smoothed)]
     stds = np.std(np.vstack(trajs), axis=0)
-    sigma = np.maximum(noise_level(list(trajs), list(times)),
+    sigma = np.maximum(measurement_noise(list(trajs), list(times)),
                        NOISE_FLOOR * np.where(stds > 0, stds, 1.0))
     span = int(max(spans))
     return Context(tuple(names), tuple(first.feature_names),

@@ -6,13 +6,15 @@ by multiple shooting (:mod:`.refine`) and its terms selected on the
 integrated likelihood (:mod:`.terms`: drops, additions, swaps, merges and exchanges
 scored by BIC). Last, interleaved held-out segments give its score. Among all scored proposals
 the sparsest one whose score is within one standard error of the best wins; others in
-that band with other hidden states (whatever their size) make the result uncertain,
-and the summary says so.
+that band with other hidden states make the result uncertain when they are no larger,
+or when the held-out data favour them (paired errors, :func:`paired_evidence`), and the
+summary says so.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy import stats
 
 from .._core.parallel import map_on
 from . import restate
@@ -28,6 +30,9 @@ __all__ = ["Verdict", "build", "judge_all", "rank", "same_structure"]
 
 RATE_TRIGGER = 1.5  # best misfit (noise variances) above which rate states are tried
 NESTED_PARENTS = 2  # single-hidden-state trials (best misfit first) nested states start from
+# One-sided level of :func:`paired_evidence`: the held-out data favour one system over
+# another when its paired errors are lower with this confidence (t test over segments).
+FAVOURED = 0.975
 
 
 def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
@@ -159,13 +164,15 @@ def _rate_candidates(proposals, ctx: Context, keep: int = 2) -> list:
 
 
 def rank(verdicts):
-    """Verdicts ordered by choice: among the scored ones, the sparsest within one
-    standard error of the best score first; returns (ordered, uncertain) where
-    ``uncertain`` lists the others in that band whose hidden states are not a superset
-    of the chosen one's (other carriers): structures the data cannot tell apart.
-    Systems in the band that only add terms or hidden states to the chosen one are
-    parsimony's call. With no scored verdict, the smallest comes first (those that do not
-    join last)."""
+    """Verdicts ordered by choice: among the scored ones, the sparsest that the held-out
+    data do not reject against the best score (within one standard error of it, or not
+    worse on the same segments by :func:`paired_evidence`) first; returns (ordered,
+    uncertain) where ``uncertain`` lists the others in that band whose hidden states
+    are not a superset of the chosen one's (other carriers) and that are no larger than
+    it or favoured over it by the held-out data: structures the data cannot tell apart.
+    Systems in the band that only add terms or hidden states to the chosen one, or are
+    larger and fit no better, are parsimony's call. With no scored verdict, the
+    smallest comes first (those that do not join last)."""
     unique = []
     for v in sorted(verdicts, key=lambda v: (not v.scored, v.cv)):
         if not any(same_structure(v, u) for u in unique):
@@ -177,7 +184,8 @@ def rank(verdicts):
                                                v.size)), []
     best = min(finite, key=lambda v: v.cv)
     band = max(best.cv + best.cv_se, TIE)
-    inside = [v for v in finite if v.cv <= band]
+    inside = [v for v in finite
+              if v.cv <= band or not paired_evidence(best, v, unpaired=True)]
     # equal sizes: fewer terms in the observed equations first. A hidden state can be
     # shifted by any function of the observed states that the library holds (prey-only
     # LV: h + d x with xdot = x h + d x^2 is the same system, same size); the variable
@@ -187,8 +195,32 @@ def rank(verdicts):
     rest = sorted([v for v in verdicts if v is not chosen],
                   key=lambda v: (not v.scored, id(v) not in ids,
                                  v.size if id(v) in ids else 0, v.cv))
-    uncertain = [v for v in rest if id(v) in ids and not _extends(v, chosen)]
+    uncertain = [v for v in rest if id(v) in ids and not _extends(v, chosen)
+                 and (v.size <= chosen.size or paired_evidence(v, chosen, unpaired=True))]
     return [chosen] + rest, uncertain
+
+
+def paired_evidence(better, worse, unpaired=False) -> bool:
+    """Whether the held-out data favour ``better`` over ``worse``: its error is lower on
+    the same segments by more than the t quantile (``FAVOURED``, one-sided, degrees of
+    freedom: segments - 1) times the standard error of the paired differences.
+
+    Pairing removes what the segments share (a hard stretch of data is hard for every
+    system), so it resolves differences that the scores' own standard errors hide; the
+    t quantile keeps a few segments (sparse samples: 4-8) from reading as strong
+    evidence. A larger alternative in the band makes the result uncertain only when
+    favoured: its extra parameters are priced by holding out (each fold refits without
+    the segment, so parameters that fit noise raise its held-out error), and scoring
+    merely as well is no evidence for them (prey-only LV at random times: ``dx/dt = h
+    x^2`` with a five-term closure, within one standard error of the exact law, paired
+    difference nil). Without paired errors (scored on other segments) the answer is
+    ``unpaired``: the band alone decides."""
+    a, b = getattr(better, "errors", None), getattr(worse, "errors", None)
+    if a is None or b is None or np.shape(a) != np.shape(b) or len(a) < 3:
+        return unpaired
+    d = np.asarray(b) - np.asarray(a)
+    se = d.std(ddof=1) / np.sqrt(len(d))
+    return bool(d.mean() > stats.t.ppf(FAVOURED, len(d) - 1) * se)
 
 
 def _observed_terms(v):

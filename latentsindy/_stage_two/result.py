@@ -44,8 +44,9 @@ class HiddenDiscovery:
         The other structures considered, best first.
     uncertain : tuple of Alternative
         Structures with other hidden states (other carriers, another number of hidden
-        states) that explain the data equally well (score within one standard error):
-        the data cannot tell them apart; the simplest one is reported.
+        states) that explain the data equally well and are no larger than the reported
+        one, or that the held-out data favour over it (paired errors per segment): the
+        data cannot tell them apart; the simplest one is reported.
     doubts : tuple of str
         Checks the reported system failed, each a sentence saying what it means: it
         could not be scored or does not reproduce held-out data down to their noise, its

@@ -45,6 +45,9 @@ class Verdict:
     history: tuple
     initial_misfit: float
     candidates: np.ndarray | None = None
+    # held-out error of each scored segment, in the folds' order (the same segments, in
+    # the same order, for every verdict of one discovery: :func:`.judge.rank` pairs them)
+    errors: np.ndarray | None = None
 
     @property
     def system(self) -> ParametricSystem:
@@ -194,7 +197,8 @@ def finish(trial: Trial) -> Verdict:
 def selected_and_scored(trial: Trial):
     """What :func:`finish` computes, in a form that pickles (a helper process can
     compute it, :mod:`latentsindy._core.parallel`): (fit, history, score, standard
-    error) after stepwise selection and the held-out score, or why there is no score
+    error, held-out errors per segment) after stepwise selection and the held-out
+    score, or why there is no score
     ("does not join", "blew up")."""
     # the pool includes the system's own terms, so a term swapped out can come back
     pool = trial.candidates | trial.fit.system.free
@@ -202,19 +206,19 @@ def selected_and_scored(trial: Trial):
         fit, history = select_terms(trial.problem, trial.fit, pool)
         if not trial.problem.joins(fit):
             return "does not join"  # not a trajectory of the system
-        cv, se, _ = cross_validate(trial.problem, fit)
+        cv, se, errors = cross_validate(trial.problem, fit)
     except BlowUp:
         return "blew up"
-    return fit, tuple(history), cv, se
+    return fit, tuple(history), cv, se, errors
 
 
 def finished(trial: Trial, outcome) -> Verdict:
     """The verdict on ``trial`` from :func:`selected_and_scored`'s ``outcome``."""
     if isinstance(outcome, str):
         return unscored(trial, outcome)
-    fit, history, cv, se = outcome
+    fit, history, cv, se, errors = outcome
     return Verdict(trial.proposal, fit, trial.problem, cv, se, history, trial.initial_misfit,
-                   trial.candidates | trial.fit.system.free)
+                   trial.candidates | trial.fit.system.free, errors)
 
 
 def unscored(trial: Trial, why: str) -> Verdict:

@@ -4,7 +4,12 @@ import numpy as np
 import pytest
 
 from latentsindy._core import local_fits
-from latentsindy._core.derivatives import AdaptiveSavitzkyGolay, noise_level, window_capped
+from latentsindy._core.derivatives import (
+    AdaptiveSavitzkyGolay,
+    measurement_noise,
+    noise_level,
+    window_capped,
+)
 
 
 def random_times(n, t_end=2 * np.pi, seed=0):
@@ -110,3 +115,20 @@ def test_window_capped_says_when_length_limited_the_window():
     m(noisy, t)
     assert m.windows_ == [11] and window_capped(11, 60)
     assert not window_capped(5, 1000)
+
+
+def test_measurement_noise_sees_through_sparse_sampling():
+    """A sinusoid and its harmonic sampled 12 times per cycle with 1% white noise:
+    their 4th differences (the signal, not noise) make noise_level read four times the
+    truth (0.041); measurement_noise, from higher orders, within 25% (0.011). Sampled densely
+    (200 per cycle) both read the same number."""
+    rng = np.random.default_rng(3)
+    for per_cycle, tolerance in ((12, 0.25), (200, 0.1)):
+        t = np.arange(120 if per_cycle == 12 else 2000) * (2 * np.pi / per_cycle)
+        x = (np.sin(t) + np.sin(2 * t + 1) / 3)[:, None]
+        noisy = x + 0.01 * rng.standard_normal(x.shape)
+        np.testing.assert_allclose(measurement_noise(noisy, t), 0.01, rtol=tolerance)
+        if per_cycle == 12:
+            assert noise_level(noisy, t)[0] > 3 * 0.01
+        else:
+            assert measurement_noise(noisy, t) == noise_level(noisy, t)

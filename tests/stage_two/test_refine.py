@@ -27,7 +27,7 @@ from latentsindy._stage_two.fit.terms import (
     select_terms,
     weak_terms,
 )
-from latentsindy._stage_two.judge import rank
+from latentsindy._stage_two.judge import paired_evidence, rank
 from latentsindy._stage_two.result_parts import Refinement, Term
 from latentsindy._stage_two.verdict import Trial, finish
 
@@ -447,12 +447,62 @@ def test_blow_up_is_raised_not_hung():
         problem.equations(problem.system, starts, np.ones(problem.n_segments), 1.0)
 
 
-def _verdict(cv, se, size, key, pivot=(0, 0)):
+def _verdict(cv, se, size, key, pivot=(0, 0), errors=None):
     system = SimpleNamespace(state_names=("x", "h"), features=(key,),
                              free=np.ones((1, 1), bool), coef=np.ones((1, 1)))
     proposal = SimpleNamespace(structure=SimpleNamespace(pivots=(pivot,)), order=1, nested=())
     return SimpleNamespace(cv=cv, cv_se=se, size=size, system=system, scored=True,
-                           proposal=proposal)
+                           proposal=proposal, errors=errors)
+
+
+def _segments(mean, spread, shift, n=8, seed=0):
+    """Held-out errors of ``n`` segments: a shared pattern (hard segments are hard for
+    every system) of the given spread, plus a system's own ``shift``."""
+    pattern = np.random.default_rng(seed).standard_normal(n)
+    return mean + spread * (pattern - pattern.mean()) + shift
+
+
+def test_paired_evidence_reads_differences_on_the_same_segments():
+    """Scores 0.06 apart with standard errors of 0.035 (the segments vary together):
+    pairing resolves a consistent difference, and does not resolve one that changes
+    sign; with 4 segments the t quantile (3.18) asks for more than with 40 (2.02)."""
+    base = _segments(1.0, 0.1, 0.0)
+    better = _verdict(0.94, 0.035, 7, 1, errors=base - 0.06 + 0.002 * np.arange(8))
+    worse = _verdict(1.0, 0.035, 5, 2, errors=base)
+    assert paired_evidence(better, worse) and not paired_evidence(worse, better)
+    mixed = _verdict(0.94, 0.035, 7, 1, errors=base - 0.06 + 0.3 * (-1.0) ** np.arange(8))
+    assert not paired_evidence(mixed, worse)
+    d = np.array([0.1, 0.1, 0.1, 0.1]) + np.array([-0.05, 0.05, -0.04, 0.04])  # t = 3.8
+    few = _verdict(0.0, 0.0, 5, 1, errors=np.zeros(4))
+    assert paired_evidence(few, _verdict(0.0, 0.0, 5, 1, errors=d))
+    d = d - 0.06  # mean 0.04, t = 1.5: below 3.18 with 3 degrees of freedom
+    assert not paired_evidence(few, _verdict(0.0, 0.0, 5, 1, errors=d))
+    assert paired_evidence(few, _verdict(0.0, 0.0, 5, 1)) is False  # unpaired: no evidence
+    assert paired_evidence(few, _verdict(0.0, 0.0, 5, 1), unpaired=True)
+
+
+def test_a_larger_alternative_vetoes_confidence_only_when_favoured():
+    """An alternative with another hidden state and more parameters, scoring as well on
+    the same segments, leaves the chosen system confident; one that the held-out data
+    favour (lower error on every segment) makes it uncertain. A sparser system outside
+    the one-standard-error band that the paired errors do not reject is chosen (prey-only
+    LV at 12 samples per cycle: the exact law, 5 parameters, 0.057 +- 0.025 above a
+    7-parameter approximation over 7 segments)."""
+    base = _segments(1.0, 0.2, 0.0)
+    small = _verdict(1.0, 0.07, 5, 1, errors=base)
+    same = _verdict(1.0, 0.07, 7, 2, pivot=(0, 1), errors=base + 0.01 * (-1.0) ** np.arange(8))
+    ordered, uncertain = rank([small, same])
+    assert ordered[0] is small and uncertain == []
+    favoured = _verdict(0.96, 0.07, 7, 2, pivot=(0, 1), errors=base - 0.04)
+    ordered, uncertain = rank([small, favoured])
+    assert ordered[0] is small and uncertain == [favoured]
+    exact = _verdict(0.23, 0.05, 5, 1, errors=np.array([0.50, 0.13, 0.14, 0.17, 0.20,
+                                                          0.22, 0.26]))
+    approx = _verdict(0.17, 0.03, 7, 2, pivot=(0, 1),
+                      errors=np.array([0.34, 0.18, 0.07, 0.10, 0.20, 0.13, 0.20]))
+    assert exact.cv > approx.cv + approx.cv_se  # outside the band
+    ordered, uncertain = rank([exact, approx])
+    assert ordered[0] is exact and uncertain == []
 
 
 def test_rank_prefers_the_smallest_within_one_standard_error():
