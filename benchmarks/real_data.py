@@ -173,8 +173,10 @@ def run_hare_lynx():
     try:
         part = _quiet(lambda: discover_hidden(hare[:cut, None], library, t=year[:cut],
                                               feature_names=["hare"], verbose=False))
-        sim = part.simulate(year[cut - 1:], x0=part.states[-1])
-        forecast = sim.states[1:, 0] if sim.status == "success" else np.full(5, np.nan)
+        # the state at the cut: the hare as counted, the hidden states as fitted
+        x0 = np.concatenate([hare[cut - 1:cut], part.hidden[-1]])
+        sim = part.simulate(year[cut - 1:], x0=x0)
+        forecast = sim.x[1:, 0] if sim.status == "success" else np.full(5, np.nan)
         row["forecast_rmse"] = float(np.sqrt(np.mean((forecast - hare[cut:]) ** 2)))
     except Exception as err:  # noqa: BLE001
         row["forecast_refused"] = f"{type(err).__name__}: {err}"

@@ -27,6 +27,8 @@ KINDS = {
     "unresolved": "a hidden state moves faster than the sampling resolves",
     "free run": "the system integrated over a whole recording blows up or runs out of budget",
     "no law": "no term of the library was kept: no law was found",
+    "without stage one": "stage one saw no law (too few samples per cycle); only laws with "
+                         "one hidden carrier were judged",
     # stage one: the coefficients' structure
     "rival structure": "another structure explains the derivatives about as well",
     "two optima": "the structure search has two optima",

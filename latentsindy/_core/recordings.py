@@ -27,7 +27,10 @@ import numpy as np
 from . import validation as val
 
 GAP_FACTOR = 20.0  # a step this many times the local mean step splits a recording
-MIN_SEGMENT = 32  # fewer samples cannot fix a derivative estimate and a hidden start
+# fewer samples cannot fix a law's parameters and a hidden start: stage one's
+# differentiator needs 7, its structure test the law's terms (a degree-2 library with one
+# state: 3) and their variation, the refinement two held-out segments of 8 samples
+MIN_SEGMENT = val.MIN_TIMES
 _NEIGHBOURS = 16  # steps on either side that set the local spacing
 GAPS = ("split", "raise")
 WARN_SHARE = 0.1  # a recording losing more than this share of its rows gets a warning
@@ -130,8 +133,10 @@ def split(x, t, *, gaps: str = "split", what: str = "x_observed"):
     if not segments:
         raise ValueError(
             f"No part of {what} is long enough to use: at least {MIN_SEGMENT} samples without "
-            "a gap are needed (for the differentiator's window and a hidden state's start; "
-            f"hundreds are better), and {'; '.join(dropped)}.")
+            "a gap are needed (a law's parameters and a hidden state's start need more "
+            "samples than they are; 8 per cycle of the fastest oscillation over a few cycles "
+            f"give a confident law, hundreds of samples a better one), and "
+            f"{'; '.join(dropped)}.")
     for note in unused_notes:
         warnings.warn(note, UserWarning, stacklevel=4)  # at the discover_hidden call
     use = DataUse(len(recordings), len(segments), int(sum(len(s) for s in segments)),

@@ -33,7 +33,7 @@ from .assemble import from_proposals, from_verdicts
 from .context import NOISE_FLOOR, Context
 from .fit.refine import RefineOptions
 from .judge import judge_all
-from .propose.hypotheses import propose
+from .propose.hypotheses import every_carrier, propose
 from .propose.proposal import evaluate, without_hidden
 from .propose.smoother import Structure
 from .result import HiddenDiscovery
@@ -42,6 +42,10 @@ VARIATION_SIGMAS = 3.0  # variation must exceed this many posterior std ...
 VARIATION_RELATIVE = 0.05  # ... and this fraction of the coefficient's mean size
 THRESHOLD = 0.05  # smallest share of an equation's RMS rate a constant term may explain
 STAGE_ONE_SHARE = 0.5  # stage one also runs on segments at least this share of the longest
+# Misfit (noise variances per sample) of the observed states held constant above which
+# they plainly move (white noise: about 1): where stage one kept no term, stage two then
+# proposes laws without it (:func:`_moves_without_law`).
+MOVES = 4.0
 # Nested hidden states (:mod:`.nested`): tried only when the best system with one hidden
 # state (or one and its rate) misses the data by far (``judge.NESTED_TRIGGER``).
 NESTED = True
@@ -229,8 +233,14 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
     pairs = _varying(coefs, hidden_terms)
     ctx = _context(fits[0], trajs, times, names, first, closure_library, support)
     index = [(names.index(s), first.feature_names.index(f)) for s, f in pairs]
+    blind = False  # stage one saw no law where the data move
     if not pairs:  # the observed states close on their own, or no law is found
         proposals = [without_hidden(first.support, ctx)]
+        if hidden_terms is None and _moves_without_law(proposals[0], first.support, ctx):
+            blind = True
+            ctx = _raw_context(ctx, fits[0])
+            proposals = [without_hidden(first.support, ctx)] + every_carrier(
+                ctx, first.support, fuller=refine)
     elif hidden_terms is None:
         series = np.stack([np.concatenate([c.term(s, f) for c in coefs]) for s, f in pairs],
                           axis=1)
@@ -259,6 +269,13 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
             "no law", "no law was found: no term of the library was kept in any equation "
             "(the derivatives are too noisy, or the samples too few per oscillation, to "
             "show one); the data are described as constant"),))
+    if blind:
+        result = dataclasses.replace(result, doubts=result.doubts + (Doubt(
+            "without stage one", "stage one kept no term although the data move (its "
+            "differentiator's window spans much of a cycle: too few samples per cycle), "
+            "so this law was found without it: only laws with one hidden state carried "
+            "by one library term were judged, from hidden series fitted in integral "
+            "form. Confirm it with denser samples or more recordings."),))
     notes = use.dropped
     if hidden_names is not None and len(hidden_names) != len(result.hidden_names):
         notes += (f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "
@@ -285,6 +302,26 @@ def _context(model, trajs, times, names, first, closure_library, support):
                    [np.asarray(tk, float) for tk in times], [np.asarray(x) for x in trajs],
                    smoothed, thetas, sigma, _knot_spacing(spans, capped, times), span,
                    val.free_rows(support, names), THRESHOLD, closure_library)
+
+
+def _moves_without_law(proposal, support, ctx) -> bool:
+    """Whether stage one kept no term of a free equation while the data plainly move:
+    the observed states held constant between the smoother's anchors miss them by more
+    than ``MOVES`` noise variances. Stage one's differentiator could not see a law
+    (sampled a few times per cycle, its window spans the cycle), so stage two looks for
+    one without it (:func:`.hypotheses.every_carrier`)."""
+    empty = ~np.asarray(support, bool).any(axis=1) & np.asarray(ctx.free_rows, bool)
+    return bool(empty.any()) and proposal.fit.misfit > MOVES
+
+
+def _raw_context(ctx, model):
+    """``ctx`` on the data as measured: where stage one saw no law its differentiator's
+    smoothing (a window spanning much of a cycle) flattens the states, so the library
+    is evaluated on the samples themselves and the hidden series get a knot at every
+    sample (the smoother's curvature penalty, not the knots, sets their smoothness)."""
+    thetas = [np.asarray(a, dtype=float) for a in model.library_.transform(ctx.observed)]
+    return dataclasses.replace(ctx, smoothed=[np.asarray(x) for x in ctx.observed],
+                               thetas=thetas, spacing=[1] * len(ctx.observed), span=1)
 
 
 def _knot_spacing(spans, capped, times, max_knots=400):

@@ -77,13 +77,13 @@ def test_a_dask_cluster_gives_the_local_results_and_keeps_them_when_a_worker_die
 
     t = recordings["worm1"][0]
     data = {k: x for k, (_, x) in recordings.items()}
-    data |= {"dies": data["worm1"][:100], "short": data["worm1"][:20]}  # 20: too few
+    data |= {"dies": data["worm1"][:100], "short": data["worm1"][:12]}  # 12: too few
     # Dask retries a task whose worker died (three times by default), then reports it
     # as KilledWorker
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                       dashboard_address=None) as cluster:
         runs = discover_many(data, DiesOnShortRecordings(degree=3, include_bias=False),
-                             t={"worm1": t, "worm2": t, "dies": t[:100], "short": t[:20]},
+                             t={"worm1": t, "worm2": t, "dies": t[:100], "short": t[:12]},
                              scheduler=cluster.scheduler_address, out=tmp_path,
                              feature_names=["x"])
     assert [r.name for r in runs] == ["worm1", "worm2", "dies", "short"]

@@ -42,13 +42,13 @@ def test_missing_rows_and_gaps_split_a_recording():
 
 def test_short_pieces_are_dropped_with_a_note():
     x, t = series(400)
-    x[20:100] = np.nan  # leaves 20 samples before the gap
-    with pytest.warns(UserWarning, match=r"100 of the 400 rows .* 80 have a missing value and "
-                                         r"20 lie in segments shorter than 32"):
+    x[12:100] = np.nan  # leaves 12 samples before the gap
+    with pytest.warns(UserWarning, match=r"100 of the 400 rows .* 88 have a missing value and "
+                                         r"12 lie in segments shorter than 16"):
         segs, _, use = recordings.split(x, t)
     assert len(segs) == 1 and use.segments == 1
     assert len(use.dropped) == 1
-    assert "with 20 samples" in use.dropped[0] and "fewer than 32" in use.dropped[0]
+    assert "with 12 samples" in use.dropped[0] and "fewer than 16" in use.dropped[0]
 
 
 def test_several_recordings_of_different_rates():
@@ -95,10 +95,10 @@ def test_single_sample():
         discover(np.ones((1, 2)))
 
 
-def test_shorter_than_the_differentiators_window():
-    with pytest.raises(ValueError, match=r"at least 32 samples without a gap.*differentiator's "
-                                         r"window.*with 20 samples"):
-        discover(series()[0][:20])
+def test_shorter_than_a_law_and_its_start_need():
+    with pytest.raises(ValueError, match=r"at least 16 samples without a gap.*8 per cycle.*"
+                                         r"with 12 samples"):
+        discover(series()[0][:12])
 
 
 def test_all_nan_column():

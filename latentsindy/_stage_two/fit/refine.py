@@ -66,12 +66,18 @@ class RefineOptions:
     device : str
         Torch device of the integrations ("cpu" or "cuda"); the normal equations are
         solved on the CPU.
+    noise : tuple of float, optional
+        Measurement noise standard deviation of each observed state, the unit of every
+        misfit and score; None (default): estimated from the data
+        (:func:`latentsindy._core.derivatives.measurement_noise`). The judge sets it
+        from its best fit where the data's estimate was too high (sparse samples).
     """
 
     segment_samples: tuple[int, int] = (8, 50)
     max_iterations: int = 40
     n_folds: int = 4
     device: str = "cpu"
+    noise: tuple | None = None
 
 
 @dataclass(frozen=True)
@@ -113,7 +119,8 @@ class Problem:
         self.observed = [np.asarray(x, float) for x in observed]
         stds = np.std(np.vstack(self.observed), axis=0)
         stds[stds == 0] = 1.0
-        sigma = measurement_noise(self.observed, self.times)
+        sigma = (measurement_noise(self.observed, self.times) if options.noise is None
+                 else np.asarray(options.noise, float))
         self.sigma = np.maximum(sigma, NOISE_FLOOR * stds)  # exact data: see NOISE_FLOOR
         relative = float(np.median(self.sigma / stds))
         guess_std = np.std(np.vstack(guesses), axis=0)

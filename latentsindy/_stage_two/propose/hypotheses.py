@@ -155,6 +155,34 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
     return chosen + list(extra.values())
 
 
+def every_carrier(ctx: Context, support, fuller=True) -> list[Proposal]:
+    """Proposals without stage one's variation: in every free equation, each library
+    term as the carrier of one hidden state (the equation's other terms as in
+    ``support``), the hidden series from the smoother in integral form (no derivative
+    of the data). For data sampled too sparsely for stage one's differentiator (a few
+    samples per cycle: its window spans the cycle and no term survives), where the
+    observed states plainly move. Ranked like :func:`propose`'s carriers: per
+    equation the best-closing and the best-fitting carrier, each also with constants
+    moved and in its reduced gauge, and (``fuller``) with its fuller closure."""
+    n_obs, n_feat = support.shape
+    chosen = {}
+    for i in range(n_obs):
+        if not ctx.free_rows[i]:
+            continue
+        carriers = _usable([evaluate(single_term(n_obs, n_feat, i, k, support), ctx,
+                                     "carrier") for k in range(n_feat)])
+        if not carriers:
+            continue
+        picks = [carriers[0], min(carriers, key=lambda q: q.fit.misfit)]
+        picks += [q for q in (gauge_reduced(p, ctx) for p in picks) if q is not None]
+        for p in picks + [improve_constants(p, ctx) for p in picks]:
+            chosen.setdefault((p.structure.key(), p.order), p)
+    out = list(chosen.values())
+    if fuller:
+        out += [q for q in map(fuller_closure, out) if q is not None]
+    return out
+
+
 def with_every_constant(ctx: Context, support, equation: int, carrier: int) -> Proposal | None:
     """One hidden state, the coefficient of ``carrier`` in ``equation``, with every
     other library term of that equation as a constant; the terms explaining less than
