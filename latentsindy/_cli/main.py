@@ -101,7 +101,8 @@ def _discover(args) -> int:
     result = discover_hidden(x, library, t=t, feature_names=observed,
                              hidden_names=hidden_names, closure_library=closure,
                              generator=args.generator, refine=not args.no_refine,
-                             gaps=args.gaps, max_hidden=args.max_hidden, device=args.device,
+                             gaps=args.gaps, outliers=args.outliers, max_hidden=args.max_hidden,
+                             device=args.device,
                              seed=args.seed,
                              verbose=not args.quiet)
     print(result.summary())
@@ -129,7 +130,8 @@ def _discover_batch(args, files, observed, library, closure, hidden_names) -> in
                          feature_names=observed,
                          hidden_names=hidden_names, closure_library=closure,
                          generator=args.generator, refine=not args.no_refine,
-                         gaps=args.gaps, max_hidden=args.max_hidden, device=args.device,
+                         gaps=args.gaps, outliers=args.outliers, max_hidden=args.max_hidden,
+                         device=args.device,
                          seeds=[args.seed])
     if args.out:
         _progress(args, f"results and runs.csv written to {args.out}/ as they finished")
@@ -204,6 +206,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--gaps", choices=("split", "raise"), default="split",
                    help="missing values (empty fields, nan) in observed columns and long "
                         "time steps split a recording into segments (default) or are refused")
+    d.add_argument("--outliers", choices=("discount", "keep"), default="discount",
+                   help="isolated spikes (one sample far off its neighbours' curve) are "
+                        "replaced by that curve and listed (default) or kept as measured")
     d.add_argument("--max-hidden", type=int, default=3,
                    help="at most this many hidden states in any structure (default 3)")
     d.add_argument("--device", default="cpu",

@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from . import spikes
 from . import validation as val
 
 GAP_FACTOR = 20.0  # a step this many times the local mean step splits a recording
@@ -33,6 +34,7 @@ GAP_FACTOR = 20.0  # a step this many times the local mean step splits a recordi
 MIN_SEGMENT = val.MIN_TIMES
 _NEIGHBOURS = 16  # steps on either side that set the local spacing
 GAPS = ("split", "raise")
+OUTLIERS = ("discount", "keep")
 WARN_SHARE = 0.1  # a recording losing more than this share of its rows gets a warning
 
 
@@ -41,7 +43,9 @@ class DataUse:
     """How the data were used: recordings given, segments and samples used, rows with
     missing values dropped, one sentence per segment that was too short to use, and
     where each segment used came from: (recording, first row, last row), in the order
-    of the result's trajectories."""
+    of the result's trajectories; and the samples discounted as isolated spikes, each as
+    (recording, time) (:mod:`latentsindy._core.spikes`: their values were replaced by
+    their neighbours' curve)."""
 
     recordings: int
     segments: int
@@ -49,6 +53,7 @@ class DataUse:
     missing_rows: int
     dropped: tuple[str, ...] = ()
     sources: tuple[tuple[int, int, int], ...] = ()
+    discounted: tuple[tuple[int, float], ...] = ()
 
     def reordered(self, order) -> DataUse:
         """The same, with the segments in ``order``."""
@@ -60,10 +65,16 @@ class DataUse:
                 f"{self.samples} samples used")
         if self.missing_rows:
             text += f" ({self.missing_rows} rows with missing values dropped)"
+        if self.discounted:
+            shown = ", ".join(f"t={t:g}" + (f" (recording {k})" if self.recordings > 1 else "")
+                              for k, t in self.discounted[:3])
+            more = ", ..." if len(self.discounted) > 3 else ""
+            text += (f"; {len(self.discounted)} isolated spike(s) discounted ({shown}{more}): "
+                     "replaced by their neighbours' curve")
         return text
 
 
-def split(x, t, *, gaps: str = "split", what: str = "x_observed"):
+def split(x, t, *, gaps: str = "split", outliers: str = "discount", what: str = "x_observed"):
     """Validate recordings and cut them at missing values and gaps.
 
     Parameters
@@ -71,6 +82,8 @@ def split(x, t, *, gaps: str = "split", what: str = "x_observed"):
     x : array (n_times, n_states) or list of such arrays (NaN allowed)
     t : spacing, times, or a list of either (one per recording)
     gaps : ``"split"`` (default) or ``"raise"`` (refuse missing values and gaps)
+    outliers : ``"discount"`` (default: isolated spikes replaced by their neighbours'
+        curve and listed, :mod:`.spikes`) or ``"keep"``
 
     Returns
     -------
@@ -80,9 +93,12 @@ def split(x, t, *, gaps: str = "split", what: str = "x_observed"):
     """
     if gaps not in GAPS:
         raise ValueError(f"gaps must be one of {GAPS}; got {gaps!r}.")
+    if outliers not in OUTLIERS:
+        raise ValueError(f"outliers must be one of {OUTLIERS}; got {outliers!r}.")
     recordings = _recordings(x, what, t)
     times = _times(t, recordings)
     segments, seg_times, sources, dropped, missing = [], [], [], [], 0
+    discounted = []
     unused_notes = []  # warned about once something is left to use
     for k, (xk, tk) in enumerate(zip(recordings, times, strict=True)):
         name = f"{what}[{k}]" if len(recordings) > 1 else what
@@ -113,7 +129,7 @@ def split(x, t, *, gaps: str = "split", what: str = "x_observed"):
                 f"spacing around it (first from t={tk[rows[i]]:g} to t={tk[rows[i + 1]]:g}); "
                 "with gaps='raise' they are refused. Use the default gaps='split' to treat "
                 "the pieces as segments of one system.")
-        unused = int(bad.sum())
+        unused, spiked = int(bad.sum()), 0
         for piece in np.split(rows, cuts + 1):
             if len(piece) < MIN_SEGMENT:
                 unused += len(piece)
@@ -121,15 +137,23 @@ def split(x, t, *, gaps: str = "split", what: str = "x_observed"):
                                f"to {tk[piece[-1]]:g}) was dropped: fewer than {MIN_SEGMENT} "
                                "samples between gaps")
                 continue
-            segments.append(xk[piece])
+            piece_t = np.asarray(tk[piece], dtype=float)
+            values = xk[piece]
+            if outliers == "discount":
+                hit, values = spikes.discount(values, piece_t)
+                discounted += [(k, float(v)) for v in piece_t[hit]]
+                spiked += int(hit.sum())
+            segments.append(values)
             sources.append((k, int(piece[0]), int(piece[-1])))
-            seg_times.append(np.asarray(tk[piece], dtype=float))
-        if unused > WARN_SHARE * len(xk):
+            seg_times.append(piece_t)
+        if unused + spiked > WARN_SHARE * len(xk):
             unused_notes.append(
-                f"{unused} of the {len(xk)} rows of {name} ({unused / len(xk):.0%}) are not "
-                f"used: {int(bad.sum())} have a missing value and {unused - int(bad.sum())} "
-                f"lie in segments shorter than {MIN_SEGMENT} samples between gaps (see the "
-                "result's data_use). Check the recording if that is not what you expect.")
+                f"{unused + spiked} of the {len(xk)} rows of {name} "
+                f"({(unused + spiked) / len(xk):.0%}) are not used as measured: "
+                f"{int(bad.sum())} have a missing value, {unused - int(bad.sum())} lie in "
+                f"segments shorter than {MIN_SEGMENT} samples between gaps and {spiked} were "
+                "discounted as isolated spikes (see the result's data_use). Check the "
+                "recording if that is not what you expect.")
     if not segments:
         raise ValueError(
             f"No part of {what} is long enough to use: at least {MIN_SEGMENT} samples without "
@@ -140,7 +164,7 @@ def split(x, t, *, gaps: str = "split", what: str = "x_observed"):
     for note in unused_notes:
         warnings.warn(note, UserWarning, stacklevel=4)  # at the discover_hidden call
     use = DataUse(len(recordings), len(segments), int(sum(len(s) for s in segments)),
-                  missing, tuple(dropped), tuple(sources))
+                  missing, tuple(dropped), tuple(sources), tuple(discounted))
     return segments, seg_times, use
 
 

@@ -60,7 +60,8 @@ def save_result(result: HiddenDiscovery, path) -> None:
             "recordings": result.data_use.recordings, "segments": result.data_use.segments,
             "samples": result.data_use.samples, "missing_rows": result.data_use.missing_rows,
             "dropped": list(result.data_use.dropped),
-            "sources": [list(s) for s in result.data_use.sources]},
+            "sources": [list(s) for s in result.data_use.sources],
+            "discounted": [list(s) for s in result.data_use.discounted]},
     }
     arrays = {"hidden_std": result.hidden_std,
               "initial_state": np.asarray(result.initial_state, dtype=float)}
@@ -147,7 +148,8 @@ def _data_use(meta):
         return None
     return DataUse(int(d["recordings"]), int(d["segments"]), int(d["samples"]),
                    int(d["missing_rows"]), tuple(str(s) for s in d["dropped"]),
-                   tuple(tuple(int(v) for v in s) for s in d["sources"]))
+                   tuple(tuple(int(v) for v in s) for s in d["sources"]),
+                   tuple((int(k), float(t)) for k, t in d.get("discounted", [])))
 
 
 def _doubts(meta):

@@ -37,14 +37,17 @@ from .propose.hypotheses import every_carrier, propose
 from .propose.proposal import evaluate, without_hidden
 from .propose.smoother import Structure
 from .result import HiddenDiscovery
+from .verdict import first_fit
 
 VARIATION_SIGMAS = 3.0  # variation must exceed this many posterior std ...
 VARIATION_RELATIVE = 0.05  # ... and this fraction of the coefficient's mean size
 THRESHOLD = 0.05  # smallest share of an equation's RMS rate a constant term may explain
 STAGE_ONE_SHARE = 0.5  # stage one also runs on segments at least this share of the longest
-# Misfit (noise variances per sample) of the observed states held constant above which
-# they plainly move (white noise: about 1): where stage one kept no term, stage two then
-# proposes laws without it (:func:`_moves_without_law`).
+# Misfit (noise variances per sample, integrated against the data) of the law without
+# hidden states (stage one's terms as constants; none: the states held constant) above
+# which the observed states do not close on their own (a right law: about 1; with 2% of
+# the samples hit by spikes of 10 noise levels, 3). Where no coefficient varied, stage two then
+# judges every library term as a hidden carrier (:func:`.hypotheses.every_carrier`).
 MOVES = 4.0
 # Nested hidden states (:mod:`.nested`): tried only when the best system with one hidden
 # state (or one and its rate) misses the data by far (``judge.NESTED_TRIGGER``).
@@ -55,7 +58,8 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
                     hidden_names=None, closure_library=None, generator="timevae",
                     generator_options=None, training=None, differentiation_method=None,
                     support=None, model=None, n_samples=64, refine=True, gaps="split",
-                    max_hidden=3, device="cpu", seed=0, verbose=True) -> HiddenDiscovery:
+                    outliers="discount", max_hidden=3, device="cpu", seed=0,
+                    verbose=True) -> HiddenDiscovery:
     """Infer hidden variables and a closed, autonomous ODE from partial observations.
 
     Stage one fits time-varying coefficients Xi(t) (:class:`DynamicSINDy`); a
@@ -127,8 +131,15 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         ``"split"`` (default): rows with missing values are dropped and a recording is
         split into segments at gaps (a time step 20 times the spacing around it); the
         segments share the law and each gets its own hidden initial values; segments
-        under 32 samples are dropped with a note (:mod:`latentsindy._core.recordings`).
+        under 16 samples are dropped with a note (:mod:`latentsindy._core.recordings`).
         ``"raise"``: missing values and gaps are an error.
+    outliers : {"discount", "keep"}
+        ``"discount"`` (default): isolated spikes (a single sample far off the curve of
+        its neighbours while they lie on it, as a loose connector makes them) are
+        replaced by their neighbours' curve before anything is fitted, and listed in
+        ``data_use.discounted`` (:mod:`latentsindy._core.spikes`; white noise of any
+        level and sharp features of the dynamics, which span several samples, are
+        left alone). ``"keep"``: every sample as measured.
     device : str
         Torch device for stage one's training and the refinement's integrations
         ("cpu", default, or "cuda"). A GPU pays off for long series in stage one; the
@@ -148,7 +159,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
                                   support=support)
     with recording() as seconds:
         result = _discover(x_observed, t, feature_names, hidden_terms, hidden_names,
-                           closure_library, stage_one, n_samples, refine, gaps,
+                           closure_library, stage_one, n_samples, refine, (gaps, outliers),
                            max_hidden, device, seed, verbose)
     return dataclasses.replace(result, timings=dict(seconds))
 
@@ -190,7 +201,8 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
               stage_one, n_samples, refine, gaps, max_hidden, device, seed, verbose):
     library, support = stage_one["library"], stage_one["support"]
     differentiation_method = stage_one["differentiation_method"]
-    segments, seg_times, use = recordings.split(x_observed, t, gaps=gaps)
+    gaps, outliers = gaps
+    segments, seg_times, use = recordings.split(x_observed, t, gaps=gaps, outliers=outliers)
     # the longest segment first: stage one's coefficients (and the result's first
     # trajectory) come from it
     order = [int(np.argmax([len(x) for x in segments]))]
@@ -236,11 +248,13 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
     blind = False  # stage one saw no law where the data move
     if not pairs:  # the observed states close on their own, or no law is found
         proposals = [without_hidden(first.support, ctx)]
-        if hidden_terms is None and _moves_without_law(proposals[0], first.support, ctx):
-            blind = True
-            ctx = _raw_context(ctx, fits[0])
-            proposals = [without_hidden(first.support, ctx)] + every_carrier(
-                ctx, first.support, fuller=refine)
+        if hidden_terms is None and _misfit(proposals[0], ctx, refine, device) > MOVES:
+            # they do not close on their own: stage two looks for a hidden carrier itself
+            blind = _no_terms(first.support, ctx)
+            if blind:
+                ctx = _raw_context(ctx, fits[0])
+                proposals = [without_hidden(first.support, ctx)]
+            proposals += every_carrier(ctx, first.support, fuller=refine)
     elif hidden_terms is None:
         series = np.stack([np.concatenate([c.term(s, f) for c in coefs]) for s, f in pairs],
                           axis=1)
@@ -304,14 +318,23 @@ def _context(model, trajs, times, names, first, closure_library, support):
                    val.free_rows(support, names), THRESHOLD, closure_library)
 
 
-def _moves_without_law(proposal, support, ctx) -> bool:
-    """Whether stage one kept no term of a free equation while the data plainly move:
-    the observed states held constant between the smoother's anchors miss them by more
-    than ``MOVES`` noise variances. Stage one's differentiator could not see a law
-    (sampled a few times per cycle, its window spans the cycle), so stage two looks for
-    one without it (:func:`.hypotheses.every_carrier`)."""
+def _misfit(proposal, ctx, refine, device) -> float:
+    """Misfit of ``proposal`` in noise variances per sample: of its system integrated
+    against the data (``refine``; inf when it blows up), else of the smoother's
+    integral-form fit (short anchored stretches, which a wrong law can still follow)."""
+    if not refine:
+        return proposal.fit.misfit
+    with single_thread():
+        trial = first_fit(proposal, ctx, RefineOptions(device=device))
+    return np.inf if trial is None else trial.fit.residual_variance
+
+
+def _no_terms(support, ctx) -> bool:
+    """Whether stage one kept no term in some free equation (called where the data
+    move: its differentiator could not see a law, sampled a few times per cycle, its
+    window spanning the cycle)."""
     empty = ~np.asarray(support, bool).any(axis=1) & np.asarray(ctx.free_rows, bool)
-    return bool(empty.any()) and proposal.fit.misfit > MOVES
+    return bool(empty.any())
 
 
 def _raw_context(ctx, model):

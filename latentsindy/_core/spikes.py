@@ -1,0 +1,135 @@
+"""Isolated spikes: single samples far off their neighbours' curve (a loose connector,
+a transmission error), found and discounted before anything is fitted.
+
+Every sample is predicted by the cubic through its two neighbours on either side (on
+the actual times) and its residual is scaled by that prediction's noise gain, so white
+noise gives residuals of one robust spread ``s`` everywhere. A sample is a spike when
+
+* its residual exceeds :data:`Z` times ``s``, read over the :data:`WINDOW` samples
+  around it (white noise: 6e-7 of samples; noise whose level follows the signal, as
+  counts' does, is judged at its level there),
+* it is the largest residual among its two neighbours on either side (a spike also
+  moves its neighbours' residuals, by 2/3 and 1/6 of its size), and
+* with it replaced by its prediction, the neighbours' residuals fall below half that
+  threshold: the rest of the curve is smooth there. A sharp feature of the dynamics
+  (a neuron's spike, a relaxation jump) spans several samples and leaves its
+  neighbours off the curve too, so it is kept.
+
+The spread ``s`` is read again after a first pass (a share of spikes inflates it). A
+discounted sample takes its prediction's value; :class:`.recordings.DataUse` lists each
+one, so nothing is dropped without a word. Data that are already smooth to rounding
+(no noise) are left alone: no residual under :data:`FLOOR` of a state's spread is a
+spike.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+Z = 5.0  # residual threshold, in robust spreads of white-noise residuals
+PASSES = 2  # passes (the spread read again after each)
+WINDOW = 101  # samples over which the residuals' local spread is read
+LOCAL = 1.5  # a local spread this many times the whole series' is the noise's own level
+# No residual below this share of the state's std is a spike: on exact data the residuals
+# are the interpolation's own error (random times: up to 2e-6 of the std), not noise
+# (the same floor as stage two's noise level, latentsindy._stage_two.context.NOISE_FLOOR).
+FLOOR = 1e-3
+_MIN_SAMPLES = 12
+
+
+def discount(x, t):
+    """``(mask, cleaned)``: the rows of ``x`` (n, n_states) holding an isolated spike in
+    any state, and ``x`` with each such value replaced by its neighbours' cubic."""
+    x = np.array(x, dtype=float)
+    t = np.asarray(t, dtype=float)
+    mask = np.zeros(len(x), dtype=bool)
+    if len(x) < _MIN_SAMPLES:
+        return mask, x
+    weights, gain = _neighbour_weights(t)
+    for _ in range(PASSES):
+        found = False
+        for j in range(x.shape[1]):
+            rows, x[:, j] = _spikes(x[:, j], weights, gain)
+            mask[rows] = True
+            found = found or bool(len(rows))
+        if not found:
+            break
+    return mask, x
+
+
+def _neighbour_weights(t):
+    """Lagrange weights of the cubic through samples k-2, k-1, k+1, k+2 at t[k], for
+    k = 2 .. n-3 (rows), and the noise gain sqrt(1 + sum w^2) of each residual."""
+    k = np.arange(2, len(t) - 2)
+    nodes = np.stack([t[k - 2], t[k - 1], t[k + 1], t[k + 2]], axis=1)
+    at = t[k][:, None]
+    w = np.ones_like(nodes)
+    for i in range(4):
+        for m in range(4):
+            if m != i:
+                w[:, i] *= (at[:, 0] - nodes[:, m]) / (nodes[:, i] - nodes[:, m])
+    return w, np.sqrt(1.0 + np.sum(w**2, axis=1))
+
+
+def _predict(x, w, k):
+    return float(w[k - 2] @ x[[k - 2, k - 1, k + 1, k + 2]])
+
+
+def _local_spread(r):
+    """Robust spread of the residuals around each sample: the whole series' (1.4826
+    times the median of ``|r|``), or where the spread over the ``WINDOW`` samples around
+    it is more than ``LOCAL`` times that, the local one. Noise whose level follows the
+    signal (counts, multiplicative noise) is then judged at its level there, while white
+    noise is judged by the precise whole-series spread (a local median over ~100
+    correlated residuals strays by 20-40%, which would hide spikes or invent them)."""
+    whole = 1.4826 * float(np.median(np.abs(r)))
+    n = len(r)
+    if n <= WINDOW:
+        return np.full(n, whole)
+    half = WINDOW // 2
+    windows = np.lib.stride_tricks.sliding_window_view(np.abs(r), WINDOW)
+    med = 1.4826 * np.median(windows, axis=1)
+    local = np.concatenate([np.full(half, med[0]), med,
+                            np.full(n - len(med) - half, med[-1])])
+    return np.where(local > LOCAL * whole, local, whole)
+
+
+def _residuals(x, w, gain):
+    """Scaled residual of every sample k = 2 .. n-3 (0 at the two ends)."""
+    r = np.zeros(len(x))
+    neighbours = np.stack([x[:-4], x[1:-3], x[3:-1], x[4:]], axis=1)
+    r[2:-2] = (x[2:-2] - np.sum(w * neighbours, axis=1)) / gain
+    return r
+
+
+def _spikes(x, w, gain):
+    """The rows of one state's isolated spikes (see the module) and the state with
+    each replaced by its prediction."""
+    r = _residuals(x, w, gain)
+    s = _local_spread(r[2:-2])
+    if not np.median(s) > 1e-12 * max(float(np.std(x)), 1e-300):
+        return [], x
+    limit = np.zeros(len(x))
+    limit[2:-2] = np.maximum(Z * s, FLOOR * float(np.std(x)))
+    limit[:2], limit[-2:] = limit[2], limit[-3]
+    found, trial, first = [], x.copy(), np.abs(r)
+    for k in np.argsort(-first):
+        if first[k] <= limit[k] or k < 2 or k > len(x) - 3:
+            continue
+        if abs(r[k]) <= limit[k]:
+            continue  # lowered by a spike discounted beside it
+        around = range(max(2, k - 2), min(len(x) - 3, k + 2) + 1)
+        if any(abs(r[i]) > abs(r[k]) for i in around if i not in found):
+            continue  # a neighbour is further off: k is on the flank of something else
+        old = trial[k]
+        trial[k] = _predict(trial, w, k)
+        local = [i for i in around if i != k]
+        after = [abs(trial[i] - _predict(trial, w, i)) / gain[i - 2] for i in local]
+        if max(after, default=0.0) < limit[k] / 2:
+            found.append(int(k))
+            r[k] = 0.0
+            for i in local:
+                r[i] = (trial[i] - _predict(trial, w, i)) / gain[i - 2]
+        else:
+            trial[k] = old  # not isolated: a feature of the curve
+    return sorted(found), trial

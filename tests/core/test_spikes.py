@@ -1,0 +1,69 @@
+"""Isolated spikes are discounted and listed; noise and sharp dynamics are left alone."""
+
+import numpy as np
+import pytest
+
+from latentsindy._core import recordings
+from latentsindy._core.spikes import discount
+
+
+def curve(t):
+    return np.column_stack([np.sin(t) + 0.3 * np.sin(3 * t), np.cos(0.7 * t)])
+
+
+def test_spikes_of_ten_noise_levels_are_found_and_replaced():
+    """0.5% of 2000 samples (10) hit by +-10 noise levels in one state: all 10 found,
+    nothing else, and each replaced within 4 noise levels of the true curve."""
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 40, 2000)
+    clean = curve(t)
+    x = clean + 0.01 * rng.standard_normal(clean.shape)
+    hit = rng.choice(np.arange(5, 1995), 10, replace=False)
+    x[hit, 0] += 0.1 * rng.choice([-1.0, 1.0], 10)
+    mask, cleaned = discount(x, t)
+    assert set(np.flatnonzero(mask)) == set(hit)
+    assert np.max(np.abs(cleaned[hit, 0] - clean[hit, 0])) < 0.04
+    np.testing.assert_array_equal(cleaned[~mask], x[~mask])
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.001, 0.01, 0.1])
+def test_white_noise_is_not_a_spike(noise):
+    rng = np.random.default_rng(1)
+    t = np.sort(rng.uniform(0, 40, 3000))  # irregular times too
+    x = curve(t) + noise * rng.standard_normal((3000, 2))
+    assert not discount(x, t)[0].any()
+
+
+def test_sharp_features_of_the_dynamics_are_kept():
+    """A relaxation jump over 3 samples and a pulse 2 samples wide at half height (a
+    neuron's spike sampled coarsely) sit far off their neighbours' curve, but they are
+    not isolated: their neighbours are off it too."""
+    t = np.arange(600) * 0.1
+    jump = np.tanh((t - 20.0) / 0.1)
+    pulse = np.exp(-0.5 * ((t - 40.0) / 0.1) ** 2)
+    x = np.column_stack([jump, pulse]) + 1e-3 * np.random.default_rng(2).standard_normal((600, 2))
+    assert not discount(x, t)[0].any()
+
+
+def test_counts_whose_noise_follows_their_level_are_not_spikes():
+    rng = np.random.default_rng(3)
+    t = np.linspace(0, 30, 2000)
+    level = 400 * (1.2 + np.sin(t)) ** 2  # counts from ~16 to ~1900
+    x = rng.poisson(level)[:, None].astype(float)
+    assert not discount(x, t)[0].any()
+
+
+def test_split_lists_the_discounted_samples_and_keep_keeps_them():
+    rng = np.random.default_rng(4)
+    t = np.linspace(0, 40, 1000)
+    x = curve(t) + 0.01 * rng.standard_normal((1000, 2))
+    x[[100, 600], 1] += 0.2
+    segs, _, use = recordings.split(x, t)
+    assert use.discounted == ((0, float(t[100])), (0, float(t[600])))
+    assert "2 isolated spike(s) discounted (t=4.004, t=24.024)" in use.sentence()
+    assert abs(segs[0][100, 1] - x[100, 1]) > 0.15
+    segs, _, use = recordings.split(x, t, outliers="keep")
+    assert use.discounted == () and np.array_equal(segs[0], x)
+    with pytest.raises(ValueError, match=r"outliers must be one of \('discount', 'keep'\); "
+                                         r"got 'drop'"):
+        recordings.split(x, t, outliers="drop")
