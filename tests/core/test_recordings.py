@@ -31,7 +31,7 @@ def test_missing_rows_and_gaps_split_a_recording():
     x[500:600, 1] = np.nan  # a long stretch: a gap
     t[700:] += 50.0  # a jump in time: another gap
     with pytest.warns(UserWarning, match=r"103 of the 1000 rows of x_observed \(10%\) are not "
-                                         r"used: 103 have a missing value and 0 lie in"):
+                                         r"used as measured: 103 have a missing value, 0 lie in"):
         segs, times, use = recordings.split(x, t)
     assert use == DataUse(1, 3, 897, 103, (), ((0, 0, 499), (0, 600, 699), (0, 700, 999)))
     assert [len(s) for s in segs] == [497, 100, 300]
@@ -43,7 +43,7 @@ def test_missing_rows_and_gaps_split_a_recording():
 def test_short_pieces_are_dropped_with_a_note():
     x, t = series(400)
     x[12:100] = np.nan  # leaves 12 samples before the gap
-    with pytest.warns(UserWarning, match=r"100 of the 400 rows .* 88 have a missing value and "
+    with pytest.warns(UserWarning, match=r"100 of the 400 rows .* 88 have a missing value, "
                                          r"12 lie in segments shorter than 16"):
         segs, _, use = recordings.split(x, t)
     assert len(segs) == 1 and use.segments == 1

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..._core.coloured import ar1_noise
 from ..._core.derivatives import measurement_noise
 from ..._core.oscillation import crossing_periods
 from ..._core.parallel import map_on
@@ -34,6 +35,7 @@ from ..context import NOISE_FLOOR
 from .field import ParametricSystem
 from .least_squares import RESOLUTION, GiveUpWatch, covariance, levenberg_marquardt
 from .shooting import BlowUp, Integrator, NormalEquations, as_array, make_groups, stable_step
+from .whiten import carry_over, whiten
 
 _GAP = 1e-2  # continuity gaps are held below this fraction of the noise level
 MAX_GRID = 400  # integrator steps per segment at most
@@ -119,8 +121,12 @@ class Problem:
         self.observed = [np.asarray(x, float) for x in observed]
         stds = np.std(np.vstack(self.observed), axis=0)
         stds[stds == 0] = 1.0
-        sigma = (measurement_noise(self.observed, self.times) if options.noise is None
-                 else np.asarray(options.noise, float))
+        sigma = measurement_noise(self.observed, self.times)
+        coloured, self.phi = ar1_noise(self.observed, self.times)
+        sigma = np.array([c if c is not None else s for c, s in zip(coloured, sigma,
+                                                                    strict=True)])
+        if options.noise is not None:
+            sigma = np.asarray(options.noise, float)
         self.sigma = np.maximum(sigma, NOISE_FLOOR * stds)  # exact data: see NOISE_FLOOR
         relative = float(np.median(self.sigma / stds))
         guess_std = np.std(np.vstack(guesses), axis=0)
@@ -144,6 +150,7 @@ class Problem:
         step = float(np.clip(stable_step(self.integrator, guesses, system.coef),
                              duration / MAX_GRID, duration / 2))
         self.groups = make_groups(self.times, self.observed, duration, step, options.device)
+        self.carry = carry_over(self.groups, self.phi, dt)  # AR(1) noise: whitening
         self.n_segments = sum(g.n_segments for g in self.groups)
         starts = []
         for g in self.groups:
@@ -188,13 +195,14 @@ class Problem:
             (vals, sens), (ends, sens_end) = out if jacobian else ((out[0], None),
                                                                     (out[1], None))
             w = torch.as_tensor(weights[segs])[:, None, None] * g.mask[..., None]
-            resid = (vals - g.observed) / sig * w
+            a = None if self.carry is None else self.carry[g.trajectory]
+            resid = whiten((vals - g.observed) / sig * g.mask[..., None], a) * w
             data_cost += float((resid**2).sum())
             gap = (torch.as_tensor(starts[segs[1:]]) - ends[:-1]) / scale * root
             if not jacobian:
                 eq.cost += float((resid**2).sum() + (gap**2).sum())
                 continue
-            s = sens / sig[:, None] * w[..., None]
+            s = whiten(sens / sig[:, None] * g.mask[..., None, None], a) * w[..., None]
             jac = torch.cat([s[..., n:], s[..., :n]], dim=-1)  # columns: (coef, start)
             eq.add(jac.reshape(len(segs), -1, n_free + n).numpy(),
                    resid.reshape(len(segs), -1).numpy(), segs[:, None])
@@ -343,7 +351,8 @@ class Problem:
             vals, _ = self.integrator_for(fit.system).run(fit.system.coef, fit.starts[segs], g,
                                                           sensitivities=False,
                                                           components=self.n_obs)
-            resid = ((vals - g.observed) / sig) ** 2 * g.mask[..., None]
+            a = None if self.carry is None else self.carry[g.trajectory]
+            resid = whiten((vals - g.observed) / sig * g.mask[..., None], a) ** 2
             per = resid.sum(dim=(1, 2)) / (g.mask.sum(dim=1) * self.n_obs).clamp_min(1)
             errors += [float(per[k]) for k, s in enumerate(segs) if which[s]]
         return np.array(errors)
