@@ -32,6 +32,7 @@ GAP_FACTOR = 20.0  # a step this many times the local mean step splits a recordi
 # differentiator needs 7, its structure test the law's terms (a degree-2 library with one
 # state: 3) and their variation, the refinement two held-out segments of 8 samples
 MIN_SEGMENT = val.MIN_TIMES
+MIN_PANEL = 8  # shortest recording of a panel (the refinement's shortest segment)
 _NEIGHBOURS = 16  # steps on either side that set the local spacing
 GAPS = ("split", "raise")
 OUTLIERS = ("discount", "keep")
@@ -74,7 +75,8 @@ class DataUse:
         return text
 
 
-def split(x, t, *, gaps: str = "split", outliers: str = "discount", what: str = "x_observed"):
+def split(x, t, *, gaps: str = "split", outliers: str = "discount", what: str = "x_observed",
+          _floor: int = MIN_SEGMENT):
     """Validate recordings and cut them at missing values and gaps.
 
     Parameters
@@ -84,6 +86,12 @@ def split(x, t, *, gaps: str = "split", outliers: str = "discount", what: str = 
     gaps : ``"split"`` (default) or ``"raise"`` (refuse missing values and gaps)
     outliers : ``"discount"`` (default: isolated spikes replaced by their neighbours'
         curve and listed, :mod:`.spikes`) or ``"keep"``
+
+    Pieces shorter than :data:`MIN_SEGMENT` samples are dropped with a note, unless
+    none is that long: a panel of short recordings (subjects, batches, trials) is then
+    used whole when at least two of its pieces have :data:`MIN_PANEL` samples or more
+    and they hold twice :data:`MIN_SEGMENT` together (the law is shared, each piece
+    adds its own hidden start).
 
     Returns
     -------
@@ -98,7 +106,7 @@ def split(x, t, *, gaps: str = "split", outliers: str = "discount", what: str = 
     recordings = _recordings(x, what, t)
     times = _times(t, recordings)
     segments, seg_times, sources, dropped, missing = [], [], [], [], 0
-    discounted = []
+    discounted, short = [], []
     unused_notes = []  # warned about once something is left to use
     for k, (xk, tk) in enumerate(zip(recordings, times, strict=True)):
         name = f"{what}[{k}]" if len(recordings) > 1 else what
@@ -131,10 +139,11 @@ def split(x, t, *, gaps: str = "split", outliers: str = "discount", what: str = 
                 "the pieces as segments of one system.")
         unused, spiked = int(bad.sum()), 0
         for piece in np.split(rows, cuts + 1):
-            if len(piece) < MIN_SEGMENT:
+            if len(piece) < _floor:
                 unused += len(piece)
+                short.append(len(piece))
                 dropped.append(f"a segment of {name} with {len(piece)} samples (t={tk[piece[0]]:g} "
-                               f"to {tk[piece[-1]]:g}) was dropped: fewer than {MIN_SEGMENT} "
+                               f"to {tk[piece[-1]]:g}) was dropped: fewer than {_floor} "
                                "samples between gaps")
                 continue
             piece_t = np.asarray(tk[piece], dtype=float)
@@ -151,16 +160,20 @@ def split(x, t, *, gaps: str = "split", outliers: str = "discount", what: str = 
                 f"{unused + spiked} of the {len(xk)} rows of {name} "
                 f"({(unused + spiked) / len(xk):.0%}) are not used as measured: "
                 f"{int(bad.sum())} have a missing value, {unused - int(bad.sum())} lie in "
-                f"segments shorter than {MIN_SEGMENT} samples between gaps and {spiked} were "
+                f"segments shorter than {_floor} samples between gaps and {spiked} were "
                 "discounted as isolated spikes (see the result's data_use). Check the "
                 "recording if that is not what you expect.")
+    usable = [n for n in short if n >= MIN_PANEL]
+    if not segments and _floor > MIN_PANEL and len(usable) >= 2 and sum(usable) >= 2 * _floor:
+        return split(x, t, gaps=gaps, outliers=outliers, what=what, _floor=MIN_PANEL)
     if not segments:
         raise ValueError(
             f"No part of {what} is long enough to use: at least {MIN_SEGMENT} samples without "
-            "a gap are needed (a law's parameters and a hidden state's start need more "
-            "samples than they are; 8 per cycle of the fastest oscillation over a few cycles "
-            f"give a confident law, hundreds of samples a better one), and "
-            f"{'; '.join(dropped)}.")
+            f"a gap are needed, or a panel of recordings of at least {MIN_PANEL} samples each "
+            f"holding {2 * MIN_SEGMENT} together (a law's parameters and each recording's "
+            "hidden start need more samples than they are; 8 per cycle of the fastest "
+            "oscillation over a few cycles give a confident law, hundreds of samples a "
+            f"better one), and {'; '.join(dropped)}.")
     for note in unused_notes:
         warnings.warn(note, UserWarning, stacklevel=4)  # at the discover_hidden call
     use = DataUse(len(recordings), len(segments), int(sum(len(s) for s in segments)),

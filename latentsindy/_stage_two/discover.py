@@ -22,13 +22,14 @@ from .._core.derivatives import (
     AdaptiveSavitzkyGolay,
     measurement_noise,
     noise_level,
-    window_capped,
 )
 from .._core.doubt import Doubt
 from .._core.library import check_library, feature_expressions, fit_library
 from .._core.threads import single_thread
-from .._core.timing import recording, timed
+from .._core.timing import recording
 from .._stage_one.estimator import DynamicSINDy
+from . import context_build
+from . import without_stage_one as blind_path
 from .assemble import from_proposals, from_verdicts
 from .context import NOISE_FLOOR, Context
 from .fit.refine import RefineOptions
@@ -37,18 +38,11 @@ from .propose.hypotheses import every_carrier, propose
 from .propose.proposal import evaluate, without_hidden
 from .propose.smoother import Structure
 from .result import HiddenDiscovery
-from .verdict import first_fit
 
 VARIATION_SIGMAS = 3.0  # variation must exceed this many posterior std ...
 VARIATION_RELATIVE = 0.05  # ... and this fraction of the coefficient's mean size
 THRESHOLD = 0.05  # smallest share of an equation's RMS rate a constant term may explain
 STAGE_ONE_SHARE = 0.5  # stage one also runs on segments at least this share of the longest
-# Misfit (noise variances per sample, integrated against the data) of the law without
-# hidden states (stage one's terms as constants; none: the states held constant) above
-# which the observed states do not close on their own (a right law: about 1; with 2% of
-# the samples hit by spikes of 10 noise levels, 3). Where no coefficient varied, stage two then
-# judges every library term as a hidden carrier (:func:`.hypotheses.every_carrier`).
-MOVES = 4.0
 # Nested hidden states (:mod:`.nested`): tried only when the best system with one hidden
 # state (or one and its rate) misses the data by far (``judge.NESTED_TRIGGER``).
 NESTED = True
@@ -232,8 +226,14 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
         # segment's own estimate is rough, and the differentiator's window hangs on it
         differentiation_method = AdaptiveSavitzkyGolay(noise_std=noise_level(trajs, times))
     fits, coefs = [], []
+    panel = len(trajs[0]) < val.MIN_TIMES  # no recording long enough for stage one
+    if panel:
+        model, first = blind_path.stand_in(trajs, times, names, features,
+                                           copy.deepcopy(check_library(library)),
+                                           differentiation_method)
+        fits, coefs = [model], [first]
     for k, (x, tk) in enumerate(zip(trajs, times, strict=True)):
-        if len(x) < STAGE_ONE_SHARE * len(trajs[0]):
+        if panel or len(x) < STAGE_ONE_SHARE * len(trajs[0]):
             continue
         model = DynamicSINDy(**(stage_one | {
             "differentiation_method": differentiation_method,
@@ -243,16 +243,20 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
         coefs.append(model.coefficients(n_samples=n_samples))
     first = coefs[0]
     pairs = _varying(coefs, hidden_terms)
-    ctx = _context(fits[0], trajs, times, names, first, closure_library, support)
+    ctx = (_bare_context(fits[0].library_, trajs, times, names, features, closure_library,
+                         support) if panel
+           else context_build.build(fits[0], trajs, times, names, first, closure_library,
+                                    support, THRESHOLD))
     index = [(names.index(s), first.feature_names.index(f)) for s, f in pairs]
     blind = False  # stage one saw no law where the data move
     if not pairs:  # the observed states close on their own, or no law is found
         proposals = [without_hidden(first.support, ctx)]
-        if hidden_terms is None and _misfit(proposals[0], ctx, refine, device) > MOVES:
+        if hidden_terms is None and (panel or blind_path.misfit(
+                proposals[0], ctx, refine, device) > blind_path.MOVES):
             # they do not close on their own: stage two looks for a hidden carrier itself
-            blind = _no_terms(first.support, ctx)
-            if blind:
-                ctx = _raw_context(ctx, fits[0])
+            blind = blind_path.no_terms(first.support, ctx)
+            if blind and not panel:
+                ctx = context_build.as_measured(ctx, fits[0].library_)
                 proposals = [without_hidden(first.support, ctx)]
             proposals += every_carrier(ctx, first.support, fuller=refine)
     elif hidden_terms is None:
@@ -284,12 +288,7 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
             "(the derivatives are too noisy, or the samples too few per oscillation, to "
             "show one); the data are described as constant"),))
     if blind:
-        result = dataclasses.replace(result, doubts=result.doubts + (Doubt(
-            "without stage one", "stage one kept no term although the data move (its "
-            "differentiator's window spans much of a cycle: too few samples per cycle), "
-            "so this law was found without it: only laws with one hidden state carried "
-            "by one library term were judged, from hidden series fitted in integral "
-            "form. Confirm it with denser samples or more recordings."),))
+        result = dataclasses.replace(result, doubts=result.doubts + (blind_path.doubt(panel),))
     notes = use.dropped
     if hidden_names is not None and len(hidden_names) != len(result.hidden_names):
         notes += (f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "
@@ -297,76 +296,19 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
     return dataclasses.replace(result, notes=result.notes + notes, data_use=use)
 
 
-@timed("smoothing")
-def _context(model, trajs, times, names, first, closure_library, support):
-    smoothed, spans, capped = [], [], []
-    for x, tk in zip(trajs, times, strict=True):
-        sm, span, cap = _smoothed(model, x, tk)
-        smoothed.append(sm)
-        spans.append(span)
-        capped.append(cap)
-    library = model.library_
-    thetas = [np.asarray(a, dtype=float) for a in library.transform(smoothed)]
+def _bare_context(library, trajs, times, names, features, closure_library, support):
+    """A context without stage one (a panel): the data as measured, the library on them,
+    the noise pooled over the recordings, a knot at every sample."""
     stds = np.std(np.vstack(trajs), axis=0)
     sigma = np.maximum(measurement_noise(list(trajs), list(times)),
                        NOISE_FLOOR * np.where(stds > 0, stds, 1.0))
-    span = int(max(spans))
-    return Context(tuple(names), tuple(first.feature_names),
-                   tuple(feature_expressions(library, first.feature_names, names)),
-                   [np.asarray(tk, float) for tk in times], [np.asarray(x) for x in trajs],
-                   smoothed, thetas, sigma, _knot_spacing(spans, capped, times), span,
-                   val.free_rows(support, names), THRESHOLD, closure_library)
-
-
-def _misfit(proposal, ctx, refine, device) -> float:
-    """Misfit of ``proposal`` in noise variances per sample: of its system integrated
-    against the data (``refine``; inf when it blows up), else of the smoother's
-    integral-form fit (short anchored stretches, which a wrong law can still follow)."""
-    if not refine:
-        return proposal.fit.misfit
-    with single_thread():
-        trial = first_fit(proposal, ctx, RefineOptions(device=device))
-    return np.inf if trial is None else trial.fit.residual_variance
-
-
-def _no_terms(support, ctx) -> bool:
-    """Whether stage one kept no term in some free equation (called where the data
-    move: its differentiator could not see a law, sampled a few times per cycle, its
-    window spanning the cycle)."""
-    empty = ~np.asarray(support, bool).any(axis=1) & np.asarray(ctx.free_rows, bool)
-    return bool(empty.any())
-
-
-def _raw_context(ctx, model):
-    """``ctx`` on the data as measured: where stage one saw no law its differentiator's
-    smoothing (a window spanning much of a cycle) flattens the states, so the library
-    is evaluated on the samples themselves and the hidden series get a knot at every
-    sample (the smoother's curvature penalty, not the knots, sets their smoothness)."""
-    thetas = [np.asarray(a, dtype=float) for a in model.library_.transform(ctx.observed)]
-    return dataclasses.replace(ctx, smoothed=[np.asarray(x) for x in ctx.observed],
-                               thetas=thetas, spacing=[1] * len(ctx.observed), span=1)
-
-
-def _knot_spacing(spans, capped, times, max_knots=400):
-    """Knot spacing of the hidden series per trajectory, in its mean sample steps.
-
-    Knots sit every half differentiator window in time: the finest scale the data
-    resolve. With several segments that is the narrowest window (in time) among the
-    segments whose window the noise chose: a segment on a slow stretch of the dynamics
-    gets a wide window that would blur the others, while a short segment's window is
-    limited by its length (``capped``), which says nothing about the dynamics. Every
-    series gets at most ``max_knots`` knots over the longest one's duration (a hidden
-    state of an ODE does not need more, and the smoother's cost grows with them).
-    """
-    steps = [(t[-1] - t[0]) / max(len(t) - 1, 1) for t in times]
-    widths = [s * w for s, w, c in zip(steps, spans, capped, strict=True) if not c]
-    if not widths:
-        widths = [s * w for s, w in zip(steps, spans, strict=True)]
-    longest = int(np.argmax([len(t) for t in times]))
-    coarsest = -(-len(times[longest]) // max_knots) * steps[longest]
-    spacing = max(min(widths) / 2, coarsest)
-    # floor with a little slack: one uniform series gives exactly span // 2 samples
-    return [int(max(1, np.floor(spacing / s + 1e-6))) for s in steps]
+    observed = [np.asarray(x, float) for x in trajs]
+    thetas = [np.asarray(a, dtype=float) for a in library.transform(observed)]
+    return Context(tuple(names), tuple(features),
+                   tuple(feature_expressions(library, list(features), names)),
+                   [np.asarray(tk, float) for tk in times], observed, observed, thetas, sigma,
+                   [1] * len(trajs), 1, val.free_rows(support, names), THRESHOLD,
+                   closure_library)
 
 
 def _named_structure(support, index):
@@ -377,22 +319,6 @@ def _named_structure(support, index):
         sup[i, k] = True
         loads[i, k, a] = 1.0
     return Structure(sup, loads, tuple(index))
-
-
-def _smoothed(model, x, t):
-    """The observed states as the stage-one differentiator smoothed them (less noise in
-    the closure library), or the raw data when the method keeps no smoothed copy; the
-    differentiator's resolution in samples (its widest smoothing window, or 1); and
-    whether that window was limited by the series' length rather than its noise."""
-    method = copy.deepcopy(model.differentiation_method) or AdaptiveSavitzkyGolay()
-    method(x, t)
-    smooth = getattr(method, "smoothed_x_", None)
-    span = int(max(getattr(method, "windows_", None) or [1]))
-    capped = (isinstance(method, AdaptiveSavitzkyGolay)
-              and window_capped(span, len(x), method.max_window))
-    if smooth is None or np.shape(smooth) != x.shape:
-        return x, span, capped
-    return np.asarray(smooth), span, capped
 
 
 def _check_hidden_request(hidden_terms, hidden_names, states, features):

@@ -6,7 +6,8 @@ import pytest
 import sympy as sp
 
 from latentsindy import discover_hidden, systems
-from latentsindy._stage_two.discover import _knot_spacing, _varying
+from latentsindy._stage_two.context_build import knot_spacing as _knot_spacing
+from latentsindy._stage_two.discover import _varying
 
 
 @pytest.fixture(scope="module")

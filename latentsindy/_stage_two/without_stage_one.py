@@ -1,0 +1,84 @@
+"""Laws found where stage one sees none: sparse samples and panels of short recordings.
+
+Stage one reads a law from derivatives. Sampled a few times per cycle, its
+differentiator's window spans the cycle and no term survives; in a panel of short
+recordings (subjects, batches, trials: 8-15 samples each) there is not even one
+recording long enough for it. The data may still plainly move. Then stage two looks
+for the law itself: every library term of every free equation is proposed as the
+carrier of one hidden state, its hidden series fitted in integral form on the samples
+as measured (no derivative), and the judge refines, selects terms and scores them like
+any proposal (all recordings share the law, each with its own hidden start). The
+result carries the ``without stage one`` doubt: only single-carrier laws were judged.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._core.doubt import Doubt
+from .._core.threads import single_thread
+from .._stage_one.coefficients import CoefficientSeries
+from .fit.refine import RefineOptions
+from .verdict import first_fit
+
+# Misfit (noise variances per sample, integrated against the data) of the law without
+# hidden states (stage one's terms as constants; none: the states held constant) above
+# which the observed states do not close on their own (a right law: about 1; with 2% of
+# the samples hit by spikes of 10 noise levels, 3). Where no coefficient varied, stage
+# two then judges every library term as a hidden carrier.
+MOVES = 4.0
+
+
+def misfit(proposal, ctx, refine, device) -> float:
+    """Misfit of ``proposal`` in noise variances per sample: of its system integrated
+    against the data (``refine``; inf when it blows up), else of the smoother's
+    integral-form fit (short anchored stretches, which a wrong law can still follow)."""
+    if not refine:
+        return proposal.fit.misfit
+    with single_thread():
+        trial = first_fit(proposal, ctx, RefineOptions(device=device))
+    return np.inf if trial is None else trial.fit.residual_variance
+
+
+def no_terms(support, ctx) -> bool:
+    """Whether stage one kept no term in some free equation (asked where the data
+    move: its differentiator could not see a law, sampled a few times per cycle, its
+    window spanning the cycle)."""
+    empty = ~np.asarray(support, bool).any(axis=1) & np.asarray(ctx.free_rows, bool)
+    return bool(empty.any())
+
+
+def doubt(panel: bool) -> Doubt:
+    why = ("no recording is long enough for stage one (a panel of short recordings)"
+           if panel else "stage one kept no term although the data move (its "
+           "differentiator's window spans much of a cycle: too few samples per cycle)")
+    return Doubt("without stage one", f"{why}, so this law was found without it: only "
+                  "laws with one hidden state carried by one library term were judged, "
+                  "from hidden series fitted in integral form. Confirm it with denser "
+                  "samples or more recordings.")
+
+
+def stand_in(trajs, times, names, features, library, differentiation_method):
+    """What stage one would have given, for a panel it cannot read: a fitted library
+    (and the differentiator) for stage two's context, and coefficients that are all
+    zero with no term kept (the result's ``coefficients`` then say so)."""
+    library.fit([np.asarray(x) for x in trajs])
+    model = _StandIn(library, differentiation_method)
+    n_obs, n_feat = len(names), len(features)
+    t = np.asarray(times[0], float)
+    zeros = np.zeros((len(t), n_obs, n_feat))
+    none = np.zeros((n_obs, n_feat), dtype=bool)
+    coefs = CoefficientSeries(
+        t, zeros, zeros.copy(), zeros[None].copy(), tuple(names), tuple(features), none,
+        none.copy(), np.zeros((n_obs, n_feat)), np.zeros((n_obs, n_feat)), zeros.copy(),
+        zeros.copy(), (Doubt("no law", "not estimated: every recording is shorter than "
+                             "stage one needs (16 samples); stage two searched alone"),))
+    return model, coefs
+
+
+class _StandIn:
+    """The two attributes of a fitted stage one that stage two's context reads."""
+
+    def __init__(self, library, differentiation_method):
+        self.library_ = library
+        self.differentiation_method = differentiation_method
