@@ -270,16 +270,19 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
         with single_thread():
             ordered, uncertain = judge_all(proposals, ctx, RefineOptions(device=device), max_hidden,
                                            NESTED)
-            if not ordered:
-                raise ValueError(
-                    f"None of the {len(proposals)} candidate closed systems could be fitted "
-                    "by integration (each blew up or failed from its estimated hidden "
-                    f"series; varying terms {pairs}), so no closed system was found. The "
-                    "library may lack the terms that carry the hidden state (a constant: "
-                    "include_bias=True), or the closure_library those of its law; "
-                    "refine=False returns the unchecked candidates.")
-            result = from_verdicts(ordered, uncertain, ctx, first, hidden_names)
-    else:
+            if ordered:
+                result = from_verdicts(ordered, uncertain, ctx, first, hidden_names)
+    if refine and not ordered:  # an answer, unchecked and saying so, not an exception
+        result = from_proposals(proposals, ctx, first, hidden_names, {
+            ij: first.std[:, ij[0], ij[1]] for ij in index})
+        result = dataclasses.replace(result, doubts=(Doubt(
+            "not checked", f"none of the {len(proposals)} candidate closed systems could "
+            "be fitted by integration (each blew up or failed from its estimated hidden "
+            f"series; varying terms {pairs}): the system shown is the best-closing "
+            "candidate, unchecked. The library may lack the terms that carry the hidden "
+            "state (a constant: include_bias=True), or the closure_library those of its "
+            "law; or the samples are too few per cycle"),))
+    elif not refine:
         stds = {ij: first.std[:, ij[0], ij[1]] for ij in index}
         result = from_proposals(proposals, ctx, first, hidden_names, stds)
     if not any(term.value != 0 for term in result.terms):
