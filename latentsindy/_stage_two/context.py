@@ -16,6 +16,13 @@ import numpy as np
 # it as noise.
 NOISE_FLOOR = 1e-3
 
+
+def floor_noise(sigma, observed) -> np.ndarray:
+    """``sigma`` per observed state, at least ``NOISE_FLOOR`` of the state's std over
+    the recordings ``observed`` (a constant state: of 1)."""
+    stds = np.std(np.vstack(observed), axis=0)
+    return np.maximum(sigma, NOISE_FLOOR * np.where(stds > 0, stds, 1.0))
+
 # Held-out scores below this (noise variances) all count as perfect: on noise-free data
 # the noise level is floored (0.1% of each state's std), scores are tiny and their
 # differences are the integrator's, not the data's; the smallest such system wins.

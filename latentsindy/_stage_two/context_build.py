@@ -12,7 +12,7 @@ from .._core import validation as val
 from .._core.derivatives import AdaptiveSavitzkyGolay, measurement_noise, window_capped
 from .._core.library import feature_expressions
 from .._core.timing import timed
-from .context import NOISE_FLOOR, Context
+from .context import Context, floor_noise
 
 
 @timed("smoothing")
@@ -27,9 +27,7 @@ def build(model, trajs, times, names, first, closure_library, support, threshold
         capped.append(cap)
     library = model.library_
     thetas = [np.asarray(a, dtype=float) for a in library.transform(smoothed)]
-    stds = np.std(np.vstack(trajs), axis=0)
-    sigma = np.maximum(measurement_noise(list(trajs), list(times)),
-                       NOISE_FLOOR * np.where(stds > 0, stds, 1.0))
+    sigma = floor_noise(measurement_noise(list(trajs), list(times)), trajs)
     span = int(max(spans))
     return Context(tuple(names), tuple(first.feature_names),
                    tuple(feature_expressions(library, first.feature_names, names)),
@@ -84,3 +82,16 @@ def as_measured(ctx, library):
     thetas = [np.asarray(a, dtype=float) for a in library.transform(ctx.observed)]
     return dataclasses.replace(ctx, smoothed=[np.asarray(x) for x in ctx.observed],
                                thetas=thetas, spacing=[1] * len(ctx.observed), span=1)
+
+
+def bare(library, trajs, times, names, features, closure_library, support, threshold):
+    """A context without stage one (a panel): the data as measured, the library on them
+    (:func:`as_measured`), the noise pooled over the recordings."""
+    observed = [np.asarray(x, float) for x in trajs]
+    sigma = floor_noise(measurement_noise(observed, list(times)), observed)
+    ctx = Context(tuple(names), tuple(features),
+                  tuple(feature_expressions(library, list(features), names)),
+                  [np.asarray(tk, float) for tk in times], observed, observed, [], sigma,
+                  [1] * len(observed), 1, val.free_rows(support, names), threshold,
+                  closure_library)
+    return as_measured(ctx, library)

@@ -20,18 +20,16 @@ from .._core import recordings
 from .._core import validation as val
 from .._core.derivatives import (
     AdaptiveSavitzkyGolay,
-    measurement_noise,
     noise_level,
 )
 from .._core.doubt import Doubt
-from .._core.library import check_library, feature_expressions, fit_library
+from .._core.library import check_library, fit_library
 from .._core.threads import single_thread
 from .._core.timing import recording
 from .._stage_one.estimator import DynamicSINDy
 from . import context_build
 from . import without_stage_one as blind_path
 from .assemble import from_proposals, from_verdicts
-from .context import NOISE_FLOOR, Context
 from .fit.refine import RefineOptions
 from .judge import judge_all
 from .propose.hypotheses import every_carrier, propose
@@ -153,7 +151,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
                                   support=support)
     with recording() as seconds:
         result = _discover(x_observed, t, feature_names, hidden_terms, hidden_names,
-                           closure_library, stage_one, n_samples, refine, (gaps, outliers),
+                           closure_library, stage_one, n_samples, refine, gaps, outliers,
                            max_hidden, device, seed, verbose)
     return dataclasses.replace(result, timings=dict(seconds))
 
@@ -192,10 +190,10 @@ def _stage_one_params(model, **given) -> dict:
 
 
 def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_library,
-              stage_one, n_samples, refine, gaps, max_hidden, device, seed, verbose):
+              stage_one, n_samples, refine, gaps, outliers, max_hidden, device, seed,
+              verbose):
     library, support = stage_one["library"], stage_one["support"]
     differentiation_method = stage_one["differentiation_method"]
-    gaps, outliers = gaps
     segments, seg_times, use = recordings.split(x_observed, t, gaps=gaps, outliers=outliers)
     # the longest segment first: stage one's coefficients (and the result's first
     # trajectory) come from it
@@ -243,8 +241,8 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
         coefs.append(model.coefficients(n_samples=n_samples))
     first = coefs[0]
     pairs = _varying(coefs, hidden_terms)
-    ctx = (_bare_context(fits[0].library_, trajs, times, names, features, closure_library,
-                         support) if panel
+    ctx = (context_build.bare(fits[0].library_, trajs, times, names, features,
+                              closure_library, support, THRESHOLD) if panel
            else context_build.build(fits[0], trajs, times, names, first, closure_library,
                                     support, THRESHOLD))
     index = [(names.index(s), first.feature_names.index(f)) for s, f in pairs]
@@ -272,9 +270,9 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
                                            NESTED)
             if ordered:
                 result = from_verdicts(ordered, uncertain, ctx, first, hidden_names)
+    stds = {ij: first.std[:, ij[0], ij[1]] for ij in index}
     if refine and not ordered:  # an answer, unchecked and saying so, not an exception
-        result = from_proposals(proposals, ctx, first, hidden_names, {
-            ij: first.std[:, ij[0], ij[1]] for ij in index})
+        result = from_proposals(proposals, ctx, first, hidden_names, stds)
         result = dataclasses.replace(result, doubts=(Doubt(
             "not checked", f"none of the {len(proposals)} candidate closed systems could "
             "be fitted by integration (each blew up or failed from its estimated hidden "
@@ -283,7 +281,6 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
             "state (a constant: include_bias=True), or the closure_library those of its "
             "law; or the samples are too few per cycle"),))
     elif not refine:
-        stds = {ij: first.std[:, ij[0], ij[1]] for ij in index}
         result = from_proposals(proposals, ctx, first, hidden_names, stds)
     if not any(term.value != 0 for term in result.terms):
         result = dataclasses.replace(result, doubts=result.doubts + (Doubt(
@@ -297,21 +294,6 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
         notes += (f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "
                   f"hidden state(s) found; names used: {list(result.hidden_names)}",)
     return dataclasses.replace(result, notes=result.notes + notes, data_use=use)
-
-
-def _bare_context(library, trajs, times, names, features, closure_library, support):
-    """A context without stage one (a panel): the data as measured, the library on them,
-    the noise pooled over the recordings, a knot at every sample."""
-    stds = np.std(np.vstack(trajs), axis=0)
-    sigma = np.maximum(measurement_noise(list(trajs), list(times)),
-                       NOISE_FLOOR * np.where(stds > 0, stds, 1.0))
-    observed = [np.asarray(x, float) for x in trajs]
-    thetas = [np.asarray(a, dtype=float) for a in library.transform(observed)]
-    return Context(tuple(names), tuple(features),
-                   tuple(feature_expressions(library, list(features), names)),
-                   [np.asarray(tk, float) for tk in times], observed, observed, thetas, sigma,
-                   [1] * len(trajs), 1, val.free_rows(support, names), THRESHOLD,
-                   closure_library)
 
 
 def _named_structure(support, index):

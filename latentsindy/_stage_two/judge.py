@@ -20,7 +20,7 @@ from scipy import stats
 
 from .._core.parallel import map_on
 from . import restate
-from .context import NESTED_TRIGGER, NOISE_FLOOR, TIE, Context
+from .context import NESTED_TRIGGER, TIE, Context, floor_noise
 from .fit.field import ParametricSystem
 from .fit.refine import RefineOptions
 from .propose.nested import nested_proposals
@@ -134,9 +134,7 @@ def _noise_from_fit(trials, best):
     if not np.isfinite(best) or best >= RESCALE:
         return None
     problem = next(t.problem for t in trials if t.fit.residual_variance == best)
-    stds = np.std(np.vstack(problem.observed), axis=0)
-    floor = NOISE_FLOOR * np.where(stds > 0, stds, 1.0)
-    sigma = np.maximum(problem.sigma * np.sqrt(best), floor)
+    sigma = floor_noise(problem.sigma * np.sqrt(best), problem.observed)
     if np.all(sigma >= 0.99 * problem.sigma):
         return None
     return tuple(float(s) for s in sigma)
