@@ -8,15 +8,21 @@ noise gives residuals of one robust spread ``s`` everywhere. A sample is a spike
 * its residual exceeds :data:`Z` times ``s``, read over the :data:`WINDOW` samples
   around it (white noise: 6e-7 of samples; noise whose level follows the signal, as
   counts' does, is judged at its level there),
-* it is the largest residual among its two neighbours on either side (a spike also
-  moves its neighbours' residuals, by 2/3 and 1/6 of its size), and
-* with it replaced by its prediction, the neighbours' residuals fall below half that
-  threshold: the rest of the curve is smooth there. A sharp feature of the dynamics
-  (a neuron's spike, a relaxation jump) spans several samples and leaves its
-  neighbours off the curve too, so it is kept.
+* the four samples on either side of it lie on one cubic (least squares, within half
+  that threshold) and it is off that cubic beyond the threshold, and
+* with it replaced by that cubic, the residuals from two samples before to two after
+  fall below half the threshold: the rest of the curve is smooth there. A sharp
+  feature of the dynamics (a neuron's spike, a relaxation jump) spans several samples
+  and leaves its neighbours off the curve too, so it is kept.
+
+Two spikes up to four samples apart hide each other (each one's prediction holds the
+other; the sample between two same-signed ones looks like a dip), so where no single
+sample passes, pairs around it are tried by the same test; two adjacent samples off
+to the same side are a feature two samples wide and are kept. Three spikes within a
+few samples are left as they are.
 
 The spread ``s`` is read again after a first pass (a share of spikes inflates it). A
-discounted sample takes its prediction's value; :class:`.recordings.DataUse` lists each
+discounted sample takes the cubic's value; :class:`.recordings.DataUse` lists each
 one, so nothing is dropped without a word. Data that are already smooth to rounding
 (no noise) are left alone: no residual under :data:`FLOOR` of a state's spread is a
 spike.
@@ -49,7 +55,7 @@ def discount(x, t):
     for _ in range(PASSES):
         found = False
         for j in range(x.shape[1]):
-            rows, x[:, j] = _spikes(x[:, j], weights, gain)
+            rows, x[:, j] = _spikes(x[:, j], t, weights, gain)
             mask[rows] = True
             found = found or bool(len(rows))
         if not found:
@@ -102,9 +108,9 @@ def _residuals(x, w, gain):
     return r
 
 
-def _spikes(x, w, gain):
+def _spikes(x, t, w, gain):
     """The rows of one state's isolated spikes (see the module) and the state with
-    each replaced by its prediction."""
+    each replaced by the cubic through the samples around it."""
     r = _residuals(x, w, gain)
     s = _local_spread(r[2:-2])
     if not np.median(s) > 1e-12 * max(float(np.std(x)), 1e-300):
@@ -112,24 +118,63 @@ def _spikes(x, w, gain):
     limit = np.zeros(len(x))
     limit[2:-2] = np.maximum(Z * s, FLOOR * float(np.std(x)))
     limit[:2], limit[-2:] = limit[2], limit[-3]
-    found, trial, first = [], x.copy(), np.abs(r)
-    for k in np.argsort(-first):
-        if first[k] <= limit[k] or k < 2 or k > len(x) - 3:
-            continue
-        if abs(r[k]) <= limit[k]:
-            continue  # lowered by a spike discounted beside it
-        around = range(max(2, k - 2), min(len(x) - 3, k + 2) + 1)
-        if any(abs(r[i]) > abs(r[k]) for i in around if i not in found):
-            continue  # a neighbour is further off: k is on the flank of something else
-        old = trial[k]
-        trial[k] = _predict(trial, w, k)
-        local = [i for i in around if i != k]
-        after = [abs(trial[i] - _predict(trial, w, i)) / gain[i - 2] for i in local]
-        if max(after, default=0.0) < limit[k] / 2:
-            found.append(int(k))
-            r[k] = 0.0
-            for i in local:
-                r[i] = (trial[i] - _predict(trial, w, i)) / gain[i - 2]
-        else:
-            trial[k] = old  # not isolated: a feature of the curve
-    return sorted(found), trial
+    found, x = [], x.copy()
+    for k in np.argsort(-np.abs(r)):
+        if abs(r[k]) <= limit[k] or k in found:
+            continue  # (residuals change as spikes beside them are replaced)
+        for rows in _sets(k, len(x)):
+            if found and set(rows) & set(found):
+                continue
+            trial = _replaced(x, t, w, gain, rows, limit)
+            if trial is not None:
+                x = trial
+                found += rows
+                r = _residuals(x, w, gain)
+                break
+    return sorted(found), x
+
+
+_HALF = 4  # samples on either side of a spike (or pair) that the cubic is fitted to
+
+
+def _sets(k, n):
+    """The rows tried as isolated spikes around a sample off the curve: the sample
+    alone, then pairs of samples up to four apart holding it or on either side of it
+    (a second spike within two samples moves the first one's prediction)."""
+    yield [k]
+    pairs = [(k, k + d) for d in range(1, 5)] + [(k - d, k) for d in range(1, 5)]
+    pairs += [(k - a, k + b) for a in range(1, 4) for b in range(1, 4) if a + b <= 4]
+    for a, b in sorted(pairs, key=lambda p: p[1] - p[0]):
+        if a >= 2 and b <= n - 3:
+            yield [a, b]
+
+
+def _replaced(x, t, w, gain, rows, limit):
+    """``x`` with ``rows`` replaced by the least-squares cubic through the samples within
+    :data:`_HALF` of them, or None where they are not isolated spikes: those samples
+    lie on the cubic (within half the limit: its residuals' spread is about 0.7 noise
+    levels, so 3.5 spreads), each of ``rows`` is off it beyond the limit
+    (two adjacent ones in opposite directions: two samples off to one side are a narrow
+    feature of the curve) and, replaced, every sample from two before to two after is
+    on the curve (its residual below half the limit), as the module says."""
+    lo, hi = max(0, rows[0] - _HALF), min(len(x), rows[-1] + _HALF + 1)
+    window = [i for i in range(lo, hi) if i not in rows]
+    if len(window) < 6:
+        return None
+    tau = t[window] - t[rows[0]]
+    scale = max(float(np.max(np.abs(tau))), 1e-300)
+    basis = np.vander(tau / scale, 4)
+    coef, *_ = np.linalg.lstsq(basis, x[window], rcond=None)
+    if np.any(np.abs(x[window] - basis @ coef) > limit[window] / 2):
+        return None
+    at = np.vander((t[rows] - t[rows[0]]) / scale, 4) @ coef
+    off = x[rows] - at
+    if np.any(np.abs(off) <= limit[rows]):
+        return None
+    if len(rows) == 2 and rows[1] - rows[0] == 1 and off[0] * off[1] > 0:
+        return None
+    trial = x.copy()
+    trial[rows] = at
+    near = range(max(2, rows[0] - 2), min(len(x) - 3, rows[-1] + 2) + 1)
+    after = [abs(trial[i] - _predict(trial, w, i)) / gain[i - 2] for i in near]
+    return trial if max(after) < min(limit[rows]) / 2 else None

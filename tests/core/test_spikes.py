@@ -26,6 +26,33 @@ def test_spikes_of_ten_noise_levels_are_found_and_replaced():
     np.testing.assert_array_equal(cleaned[~mask], x[~mask])
 
 
+@pytest.mark.parametrize("gap, signs", [(1, (1, -1)), (2, (1, 1)), (2, (1, -1)),
+                                         (3, (-1, -1)), (4, (1, -1))])
+def test_spikes_close_together_are_found_as_a_pair(gap, signs):
+    """Two spikes within four samples move each other's prediction (the one between two
+    same-signed spikes looks like a dip): both found, nothing else, each replaced within
+    4 noise levels of the curve."""
+    rng = np.random.default_rng(5)
+    t = np.linspace(0, 40, 2000)
+    clean = curve(t)
+    x = clean + 0.01 * rng.standard_normal(clean.shape)
+    hit = [700, 700 + gap]
+    x[hit, 0] += 0.1 * np.array(signs)
+    mask, cleaned = discount(x, t)
+    assert set(np.flatnonzero(mask)) == set(hit)
+    assert np.max(np.abs(cleaned[hit, 0] - clean[hit, 0])) < 0.04
+
+
+def test_two_adjacent_samples_off_to_one_side_are_kept():
+    """Two neighbouring samples off the curve in the same direction are a feature two
+    samples wide, not two spikes."""
+    rng = np.random.default_rng(6)
+    t = np.linspace(0, 40, 2000)
+    x = curve(t) + 0.01 * rng.standard_normal((2000, 2))
+    x[[700, 701], 0] += 0.1
+    assert not discount(x, t)[0].any()
+
+
 @pytest.mark.parametrize("noise", [0.0, 0.001, 0.01, 0.1])
 def test_white_noise_is_not_a_spike(noise):
     rng = np.random.default_rng(1)
