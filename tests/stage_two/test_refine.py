@@ -20,8 +20,9 @@ from latentsindy._stage_two.doubts.terms import missing_doubts, weak_doubts
 from latentsindy._stage_two.fit import terms as terms_module
 from latentsindy._stage_two.fit.field import FeatureMap, ParametricSystem
 from latentsindy._stage_two.fit.least_squares import GiveUpWatch
+from latentsindy._stage_two.fit.normal_equations import DENSE, NormalEquations, as_array, solve
 from latentsindy._stage_two.fit.refine import JOIN, Fit, Problem, cross_validate
-from latentsindy._stage_two.fit.shooting import DENSE, BlowUp, NormalEquations, as_array, solve
+from latentsindy._stage_two.fit.shooting import BlowUp
 from latentsindy._stage_two.fit.terms import (
     AMBIGUITY,
     ambiguities,
@@ -227,10 +228,44 @@ def test_damped_solves_agree_dense_and_sparse(size):
         np.testing.assert_array_equal(as_array(form), before)
 
 
+@pytest.mark.parametrize("n_free", [0, 6])
+def test_large_arrow_systems_are_solved_through_their_banded_starts(n_free):
+    """Normal equations of 400 segments (free coefficients coupling everything, each
+    start its own segment and, through continuity, its neighbours'): solved through the
+    banded starts' block and the Schur complement, damped or not, one right-hand side
+    or several, they agree with the dense solve; a block that is not banded goes to
+    the general sparse solver and agrees too."""
+    import scipy.sparse as sps
+
+    rng = np.random.default_rng(2)
+    k, n = 400, 2
+    eq = NormalEquations(n_free, k, n)
+    segs = np.arange(k)[:, None]
+    eq.add(rng.normal(size=(k, 9, n_free + n)), rng.normal(size=(k, 9)), segs)
+    pairs = np.stack([np.arange(k - 1), np.arange(1, k)], axis=1)
+    eq.add(rng.normal(size=(k - 1, n, n_free + 2 * n)), rng.normal(size=(k - 1, n)), pairs)
+    matrix = eq.matrix()
+    assert sps.issparse(matrix) and matrix.shape[0] > DENSE
+    dense = matrix.toarray()
+    damping = rng.uniform(0.1, 2.0, size=dense.shape[0])
+    rhs = rng.normal(size=(dense.shape[0], 3))
+    np.testing.assert_allclose(solve(matrix, rhs[:, 0], damping, n_free),
+                               np.linalg.solve(dense + np.diag(damping), rhs[:, 0]),
+                               rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(solve(matrix, rhs, border=n_free), np.linalg.solve(dense, rhs),
+                               rtol=1e-8, atol=1e-10)
+    far = sps.lil_matrix(matrix.shape)  # the first start touching the last one
+    far[n_free, -1] = far[-1, n_free] = 0.1
+    wide = (matrix + far.tocsc()).tocsc()
+    np.testing.assert_allclose(solve(wide, rhs[:, 1], damping, n_free),
+                               np.linalg.solve(wide.toarray() + np.diag(damping), rhs[:, 1]),
+                               rtol=1e-9, atol=1e-11)
+
+
 def test_normal_equations_dense_and_sparse_assemble_the_same_system(monkeypatch):
     """The arrow-structured J^T J and J^T r, assembled densely (small systems) and
     sparsely (large ones), equal the products of the whole Jacobian written out."""
-    from latentsindy._stage_two.fit import shooting
+    from latentsindy._stage_two.fit import normal_equations
 
     rng = np.random.default_rng(1)
     p, k, n = 3, 5, 2
@@ -252,7 +287,7 @@ def test_normal_equations_dense_and_sparse_assemble_the_same_system(monkeypatch)
         cols = np.concatenate([np.arange(p), p + segs0[b, 0] * n + np.arange(n)])
         first[cols] += jac0[b].T @ r0[b]
     for dense in (True, False):
-        monkeypatch.setattr(shooting, "DENSE", 10**6 if dense else 0)
+        monkeypatch.setattr(normal_equations, "DENSE", 10**6 if dense else 0)
         empty = NormalEquations(p, k, n)
         assert not np.any(as_array(empty.matrix())) and not np.any(empty.grad)
         eq = NormalEquations(p, k, n)

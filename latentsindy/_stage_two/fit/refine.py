@@ -34,7 +34,8 @@ from ..._core.timing import timed
 from ..context import NOISE_FLOOR
 from .field import ParametricSystem
 from .least_squares import RESOLUTION, GiveUpWatch, covariance, levenberg_marquardt
-from .shooting import BlowUp, Integrator, NormalEquations, as_array, make_groups, stable_step
+from .normal_equations import NormalEquations, as_array
+from .shooting import BlowUp, Integrator, make_groups, stable_step
 from .whiten import carry_over, whiten
 
 _GAP = 1e-2  # continuity gaps are held below this fraction of the noise level

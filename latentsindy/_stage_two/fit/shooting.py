@@ -8,11 +8,9 @@ sample times come from cubic Hermite interpolation between grid points (the same
 order as the integrator). The observed samples give the data residuals; the gap
 between a segment's end and the next segment's start gives the continuity residuals.
 
-The least-squares normal equations have an arrow structure (coefficients couple
-everything, each start couples only its own segment and its neighbours), so they are
-assembled block by block; up to ``DENSE`` unknowns (a few hundred: every benchmark
-family) they are held and solved densely, which costs least there, and beyond it
-sparsely: memory grows with the number of segments, not with their product.
+The least-squares normal equations this gives have an arrow structure (coefficients
+couple everything, each start couples only its own segment and its neighbours); they
+are assembled and solved in :mod:`.normal_equations`.
 """
 
 from __future__ import annotations
@@ -20,15 +18,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sps
 import torch
-from scipy.sparse.linalg import spsolve
 
 from .field import FeatureMap, ParametricSystem
-
-# normal equations with up to this many unknowns are assembled and solved densely
-# (LAPACK), larger ones sparsely
-DENSE = 600
 
 
 class BlowUp(Exception):
@@ -287,82 +279,6 @@ def _hermite_table(group: Group, on):
     if on == "numpy":
         return table
     return [torch.as_tensor(a, device=on) for a in table]
-
-
-class NormalEquations:
-    """Block assembly of J^T J and J^T r for (free coefficients, segment starts): a dense
-    array when the system has at most ``DENSE`` unknowns, else a sparse matrix."""
-
-    def __init__(self, n_free, n_segments, n_states):
-        self.p, self.k, self.n = n_free, n_segments, n_states
-        self.size = n_free + n_segments * n_states
-        self.dense = self.size <= DENSE
-        # per added block: the unknowns its gradient entries go to and those entries;
-        # where its Gram entries go (flat row * size + col indices when dense, a (2, N)
-        # stack of rows and columns when sparse) and those entries
-        self.grad_index, self.grads, self.where, self.vals = [], [], [], []
-        self.cost, self._grad = 0.0, None
-
-    def add(self, jac, resid, segments):
-        """Rows ``jac`` (B, R, P + n * len(segments)) for the residuals ``resid`` (B, R)
-        of the blocks whose starts are ``segments`` (B, len(segments))."""
-        jac, resid = np.asarray(jac), np.asarray(resid)
-        gram = np.matmul(jac.transpose(0, 2, 1), jac)  # the BLAS: 7x an einsum's speed
-        self.grads.append(np.einsum("brc,br->bc", jac, resid).ravel())
-        self._grad = None
-        self.cost += float(np.sum(resid**2))
-        idx = np.concatenate([np.broadcast_to(np.arange(self.p), (len(segments), self.p)),
-                              self.p + (segments[..., None] * self.n
-                                        + np.arange(self.n)).reshape(len(segments), -1)],
-                             axis=1)
-        self.grad_index.append(idx.ravel())
-        if self.dense:
-            self.where.append((idx[:, :, None] * self.size + idx[:, None, :]).ravel())
-        else:
-            self.where.append(np.stack([np.repeat(idx[:, :, None], idx.shape[1], axis=2).ravel(),
-                                        np.repeat(idx[:, None, :], idx.shape[1], axis=1).ravel()]))
-        self.vals.append(gram.ravel())
-
-    @property
-    def grad(self):
-        """J^T r, summed over the blocks in the order they were added."""
-        if self._grad is None:
-            self._grad = np.zeros(self.size) if not self.grad_index else np.bincount(
-                np.concatenate(self.grad_index), np.concatenate(self.grads), minlength=self.size)
-        return self._grad
-
-    def matrix(self):
-        """J^T J: a dense array (at most ``DENSE`` unknowns) or a sparse csc matrix."""
-        if not self.vals:
-            return np.zeros((self.size, self.size)) if self.dense else sps.csc_matrix(
-                (self.size, self.size))
-        if self.dense:  # entries summed in the order they were added
-            return np.bincount(np.concatenate(self.where), np.concatenate(self.vals),
-                               minlength=self.size * self.size).reshape(self.size, self.size)
-        rows, cols = np.concatenate(self.where, axis=1)
-        return sps.csc_matrix((np.concatenate(self.vals), (rows, cols)),
-                              shape=(self.size, self.size))
-
-
-def as_array(matrix):
-    """A matrix from :meth:`NormalEquations.matrix` as a dense array."""
-    return matrix.toarray() if sps.issparse(matrix) else matrix
-
-
-def solve(matrix, rhs, damping=None):
-    """Solve ``(matrix + diag(damping)) x = rhs`` for a symmetric positive (semi)definite
-    ``matrix``, a dense array or sparse (solved densely when small); ``matrix`` itself
-    is left as it was, so one point's matrix serves all of its damped solves."""
-    if sps.issparse(matrix) and matrix.shape[0] <= DENSE:
-        matrix = matrix.toarray()
-    if isinstance(matrix, np.ndarray):
-        if damping is not None:
-            matrix = matrix.copy()
-            matrix[np.diag_indices_from(matrix)] += damping
-        return np.linalg.solve(matrix, rhs)
-    if damping is not None:
-        matrix = matrix + sps.diags(damping, format="csc")
-    return spsolve(matrix, rhs)
 
 
 STEP = 0.2  # integrator step times the fastest local rate (see stable_step)
