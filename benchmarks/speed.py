@@ -13,6 +13,11 @@ Usage::
     python benchmarks/speed.py                       # prey-only LV, 5 draws
     python benchmarks/speed.py --families lorenz_z modulated lorenz_x --draws 3
     python benchmarks/speed.py --one-process         # no second process for stage two
+    python benchmarks/speed.py --scaling --draws 3   # 2,000 samples against 20,000
+
+``--scaling`` times each draw twice: as drawn (2,000 samples) and over ten times its
+span at the same sampling density (20,000 samples), and prints the ratio of the two
+calls' times (the target: at most 3).
 
 A lone call may give stage two's independent pieces (held-out folds, candidates after
 their first fit) to a second process on a second core (``latentsindy._core.parallel``);
@@ -54,8 +59,9 @@ def pysindy_seconds(d, noise, seed=0):
     return time.perf_counter() - start
 
 
-def one(family, index, noise):
-    d = draw(family, index, noise)
+def one(family, index, noise, span=1):
+    d = draw(family, index, noise) if span == 1 else draw(
+        family, index, noise, lambda t_end: np.linspace(0.0, span * t_end, 2000 * span))
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -65,7 +71,34 @@ def one(family, index, noise):
     fits = pysindy_seconds(d, noise)
     return {"family": family, "draw": index, "wall": wall, "pysindy": fits,
             "ratio": wall / fits, "timings": dict(result.timings),
-            "confident": result.confident}
+            "confident": result.confident, "samples": len(d.t)}
+
+
+def scaling(families, draws, noise, span=10):
+    """Each draw as drawn and over ``span`` times its span (same density): the two
+    calls' times and their ratio."""
+    rows = []
+    for family in families:
+        for index in range(draws):
+            short, long = one(family, index, noise), one(family, index, noise, span)
+            rows.append((family, index, short, long))
+            print(f"{family:20s} draw {index}: {short['samples']} samples {short['wall']:5.1f} s,"
+                  f" {long['samples']} samples {long['wall']:5.1f} s, ratio "
+                  f"{long['wall'] / short['wall']:.1f}", flush=True)
+    print(f"\n| family | draws | median wall, 2,000 samples (s) | median wall, {2000 * span:,} "
+          "samples (s) | median ratio | worst ratio | median split of the long call (s) |"
+          "\n|---|---|---|---|---|---|---|")
+    for family in families:
+        rs = [r for r in rows if r[0] == family]
+        ratios = [r[3]["wall"] / r[2]["wall"] for r in rs]
+        stages = sorted({k for r in rs for k in r[3]["timings"]})
+        split = {k: float(np.median([r[3]["timings"].get(k, 0.0) for r in rs])) for k in stages}
+        text = ", ".join(f"{k} {v:.1f}" for k, v in sorted(split.items(), key=lambda kv: -kv[1])
+                         if v >= 0.1)
+        print(f"| {family} | {len(rs)} | {np.median([r[2]['wall'] for r in rs]):.1f} | "
+              f"{np.median([r[3]['wall'] for r in rs]):.1f} | {np.median(ratios):.1f} | "
+              f"{max(ratios):.1f} | {text} |")
+    return rows
 
 
 def main(families, draws, noise, one_process=False):
@@ -99,5 +132,11 @@ if __name__ == "__main__":
     parser.add_argument("--noise", type=float, default=0.01)
     parser.add_argument("--one-process", action="store_true",
                         help="no second process for stage two's independent pieces")
+    parser.add_argument("--scaling", action="store_true",
+                        help="each draw at 2,000 samples and over ten times its span")
     args = parser.parse_args()
-    main(args.families, args.draws, args.noise, args.one_process)
+    if args.scaling:
+        parallel.enable(not args.one_process)
+        scaling(args.families, args.draws, args.noise)
+    else:
+        main(args.families, args.draws, args.noise, args.one_process)

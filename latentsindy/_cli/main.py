@@ -88,6 +88,8 @@ def _discover(args) -> int:
     files, batch = _data_files(args.data)
     try:
         val.check_device(args.device)
+        if args.max_time is not None:
+            val.check_positive(args.max_time, "--max-time")
     except ValueError as err:
         raise UsageError(str(err)) from None
     if args.scheduler and not batch:
@@ -102,6 +104,7 @@ def _discover(args) -> int:
                              hidden_names=hidden_names, closure_library=closure,
                              generator=args.generator, refine=not args.no_refine,
                              gaps=args.gaps, outliers=args.outliers, max_hidden=args.max_hidden,
+                             max_time=args.max_time,
                              device=args.device,
                              seed=args.seed,
                              verbose=not args.quiet)
@@ -131,6 +134,7 @@ def _discover_batch(args, files, observed, library, closure, hidden_names) -> in
                          hidden_names=hidden_names, closure_library=closure,
                          generator=args.generator, refine=not args.no_refine,
                          gaps=args.gaps, outliers=args.outliers, max_hidden=args.max_hidden,
+                         max_time=args.max_time,
                          device=args.device,
                          seeds=[args.seed])
     if args.out:
@@ -211,6 +215,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "replaced by that curve and listed (default) or kept as measured")
     d.add_argument("--max-hidden", type=int, default=3,
                    help="at most this many hidden states in any structure (default 3)")
+    d.add_argument("--max-time", type=float, default=None, metavar="SECONDS",
+                   help="wall seconds per call: once spent, the best system found so far "
+                        "is returned with a 'time budget' doubt (default: no limit)")
     d.add_argument("--device", default="cpu",
                    help="torch device for stage one and the refinement (cpu, cuda, cuda:1)")
     d.add_argument("--seed", type=int, default=0)

@@ -29,6 +29,8 @@ KINDS = {
     "no law": "no term of the library was kept: no law was found",
     "without stage one": "stage one saw no law (too few samples per cycle); only laws with "
                          "one hidden carrier were judged",
+    "time budget": "max_time was spent before the judgement ended: some hypotheses or "
+                   "steps were not judged",
     # stage one: the coefficients' structure
     "rival structure": "another structure explains the derivatives about as well",
     "two optima": "the structure search has two optima",

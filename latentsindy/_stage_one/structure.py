@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._core.budget import expired, passed
 from .._core.parallel import available, forked_map
 from .._core.threads import single_thread
 from .vcm_fit import EquationFit, EquationModel
@@ -134,6 +135,8 @@ class StructureSearch:
         if not self.free or not fit.varying:
             return fit
         while True:
+            if _spent():
+                return fit
             cheap = []
             for j in fit.constant:
                 if j in proposed:
@@ -167,9 +170,12 @@ class StructureSearch:
         return out
 
     def climb(self, fit, adaptive):
-        """Greedy ascent from ``fit``; returns the last fit and its neighbours' fits."""
+        """Greedy ascent from ``fit``; returns the last fit and its neighbours' fits
+        (none where the discovery's ``max_time`` ran out: the ascent stops there)."""
         seconds = self.pace.get(adaptive, 0.0)  # per neighbour, at the last step's pace
         while True:
+            if _spent():
+                return fit, []
             step = self.neighbours(fit)
             begin = time.perf_counter()
             if seconds * len(step) >= SIDE_BY_SIDE:
@@ -209,7 +215,7 @@ class StructureSearch:
         for f in found:
             if not any(same_structure(f, o) for o in [best, *others]):
                 others.append(f)
-        if not others:
+        if not others or _spent():
             return (*ends[0], None)
         cache = dict(self.model._cache)
         rival = max((self.admissible(f.support, f.varying, True) for f in others),
@@ -233,13 +239,22 @@ class StructureSearch:
         proposed = set(proposed)
         reduced = self.earned(fit, proposed)
         if reduced is not fit:
-            fit, near = reduced, [self.admissible(s, v, True, reduced)
-                                  for s, v in self.neighbours(reduced)]
+            fit, near = reduced, [] if _spent() else [
+                self.admissible(s, v, True, reduced) for s, v in self.neighbours(reduced)]
         rivals = tuple(f for f in near if self._is_rival(f, fit, proposed))
         # the other climb's end, unless it is the choice or among its rivals already
         apart = () if other is None or any(same_structure(other, f)
                                            for f in (fit, *rivals)) else (other,)
         return EquationChoice(fit, rivals, len(self.model._cache), apart)
+
+
+def _spent() -> bool:
+    """Whether the discovery's ``max_time`` ran out (recorded): the search stops where
+    it is, with the best structure found so far."""
+    if expired():
+        passed("stage one's structure search (stopped where it was)")
+        return True
+    return False
 
 
 def same_structure(a, b) -> bool:

@@ -164,7 +164,8 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
         tuple(observed), tuple(names), states, terms, coefs, score, score_se,
         alternatives, unsure, refinement, tuple(notes), list(ctx.times), list(ctx.observed),
         hidden, [np.asarray(h) for h in best.proposal.hidden], trajectories[0][0].copy(),
-        doubts(score, score_se, refinement, terms, names)
+        doubts(score, score_se, refinement, terms, names,
+               None if best.scored else best.history[0])
         + segment_constant_doubts(terms, names, system.n_observed, trajectories, stds)
         + first_integral_doubt(best, names)
         + exchange_doubts(exchangeable_terms(best), system, rename, names_map)

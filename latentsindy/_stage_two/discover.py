@@ -18,6 +18,7 @@ import pysindy as ps
 
 from .._core import recordings
 from .._core import validation as val
+from .._core.budget import budget, expired
 from .._core.derivatives import (
     AdaptiveSavitzkyGolay,
     noise_level,
@@ -50,8 +51,8 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
                     hidden_names=None, closure_library=None, generator="timevae",
                     generator_options=None, training=None, differentiation_method=None,
                     support=None, model=None, n_samples=64, refine=True, gaps="split",
-                    outliers="discount", max_hidden=3, device="cpu", seed=0,
-                    verbose=True) -> HiddenDiscovery:
+                    outliers="discount", max_hidden=3, max_time=None, device="cpu",
+                    seed=0, verbose=True) -> HiddenDiscovery:
     """Infer hidden variables and a closed, autonomous ODE from partial observations.
 
     Stage one fits time-varying coefficients Xi(t) (:class:`DynamicSINDy`); a
@@ -132,6 +133,14 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         ``data_use.discounted`` (:mod:`latentsindy._core.spikes`; white noise of any
         level and sharp features of the dynamics, which span several samples, are
         left alone). ``"keep"``: every sample as measured.
+    max_time : float, optional
+        Wall seconds for the whole call (default None: no limit). Once they are spent,
+        stage one's structure search stops where it is and stage two starts no further
+        hypothesis, term-selection step or fit iteration: the best system found so far
+        is returned, with the doubt ``"time budget"`` saying what was not judged (so
+        never ``confident``); stage one's training (a fixed number of steps, seconds
+        on most data, see ``timings``) always completes. With ``verbose``, progress
+        lines say which step is running and how many hypotheses remain.
     device : str
         Torch device for stage one's training and the refinement's integrations
         ("cpu", default, or "cuda"). A GPU pays off for long series in stage one; the
@@ -149,10 +158,18 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
                                   generator_options=generator_options, training=training,
                                   differentiation_method=differentiation_method,
                                   support=support)
-    with recording() as seconds:
+    if max_time is not None:
+        val.check_positive(max_time, "max_time")
+    with recording() as seconds, budget(max_time, verbose) as spent:
         result = _discover(x_observed, t, feature_names, hidden_terms, hidden_names,
                            closure_library, stage_one, n_samples, refine, gaps, outliers,
                            max_hidden, device, seed, verbose)
+    if spent.passed:
+        result = dataclasses.replace(result, doubts=result.doubts + (Doubt(
+            "time budget", f"max_time={max_time:g} s was spent ({spent.elapsed():.1f} s "
+            f"used) before the judgement ended; left out: {'; '.join(spent.passed)}. The "
+            "system shown is the best found by then. Raise max_time (or leave it unset) "
+            "for a full judgement"),))
     return dataclasses.replace(result, timings=dict(seconds))
 
 
@@ -279,7 +296,10 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
             f"series; varying terms {pairs}): the system shown is the best-closing "
             "candidate, unchecked. The library may lack the terms that carry the hidden "
             "state (a constant: include_bias=True), or the closure_library those of its "
-            "law; or the samples are too few per cycle"),))
+            "law; or the samples are too few per cycle") if not expired() else Doubt(
+            "not checked", "max_time was spent before any candidate closed system was "
+            "fitted by integration: the system shown is the best-closing candidate, "
+            "unchecked"),))
     elif not refine:
         result = from_proposals(proposals, ctx, first, hidden_names, stds)
     if not any(term.value != 0 for term in result.terms):

@@ -18,6 +18,7 @@ from dataclasses import replace
 import numpy as np
 from scipy import stats
 
+from .._core.budget import expired, passed, progress
 from .._core.parallel import map_on
 from . import restate
 from .context import NESTED_TRIGGER, TIE, Context, floor_noise
@@ -52,17 +53,21 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     the best single-hidden-state proposals with a hidden state inside the hidden
     equation (:mod:`.nested`). Returns ``rank``'s result."""
     options = options or RefineOptions()
+    progress(f"stage two: {len(proposals)} hypotheses to fit")
     # each refined in order, given up against the best before it (on a CPU two at a
     # time, the same fits: first_fits)
     trials = first_fits(proposals, ctx, options)
     best = min((t.fit.residual_variance for t in trials), default=np.inf)
     noise = _noise_from_fit(trials, best) if options.noise is None else None
-    if noise is not None:
+    if noise is not None and _time_left("the judgement in the noise level of the best fit"):
         return judge_all(proposals, ctx, replace(options, noise=noise), max_hidden, nested)
-    if best > RATE_TRIGGER and max_hidden >= 2:
+    if best > RATE_TRIGGER and max_hidden >= 2 and _time_left("hidden states' rates"):
+        progress("no first-order law reproduces the data: hidden states' rates")
         trials += first_fits(_rate_candidates(proposals, ctx), ctx, options, trials)
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
-    if nested and best > NESTED_TRIGGER and max_hidden >= 2:
+    if (nested and best > NESTED_TRIGGER and max_hidden >= 2
+            and _time_left("nested hidden states")):
+        progress("the best still misses the data: nested hidden states")
         parents = _distinct_parents(trials, NESTED_PARENTS)
         trials += first_fits([p for parent in parents
                               for p in nested_proposals(parent.proposal, ctx)],
@@ -76,10 +81,20 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     # the larger systems first: selecting terms costs about in proportion to the free
     # coefficients (more terms to drop, a larger fit each time; on Lorenz with z hidden
     # 14 free took 1.4 s, 6 free 0.3 s), so neither process ends on a long one alone
+    progress(f"selecting terms and scoring on held-out data: {len(finishing)} of "
+             f"{len(trials)} fitted hypotheses contend")
     outcomes = iter(map_on(options.device, selected_and_scored, finishing,
                            cost=[t.fit.system.n_free for t in finishing]))
     verdicts = [finished(t, next(outcomes)) if c else unscored(t, "rejected")
                 for t, c in zip(trials, contending, strict=True)]
+    left = sum(v.history[:1] == ("not judged",) for v in verdicts)
+    if left:
+        passed(f"{left} of {len(finishing)} contending hypotheses not scored")
+    if expired():  # max_time is spent: a winner is not restated
+        ordered, uncertain = rank(verdicts)
+        if ordered and ordered[0].scored:
+            passed("restatements of the winner")
+        return ordered, uncertain
     ordered, uncertain = rank(verdicts)
     reduced = None
     if ordered and ordered[0].scored and not ordered[0].proposal.nested:
@@ -119,6 +134,15 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
                 verdicts = [v for v in verdicts if v is not lifted]
             return rank(verdicts + [reduced])
     return ordered, uncertain
+
+
+def _time_left(step: str) -> bool:
+    """Whether ``step`` may start: the discovery's ``max_time`` is not spent (else the
+    step is recorded as left out, :mod:`.._core.budget`)."""
+    if expired():
+        passed(step)
+        return False
+    return True
 
 
 def _noise_from_fit(trials, best):
@@ -207,8 +231,10 @@ def rank(verdicts):
             unique.append(v)  # the same final system reached twice counts once
     verdicts = unique
     finite = [v for v in verdicts if v.scored and np.isfinite(v.cv)]
-    if not finite:  # a fit that is no trajectory of its system comes last
+    if not finite:  # a fit that is no trajectory of its system comes last; a contender
+        # left unscored by max_time before those rejected against it
         return sorted(verdicts, key=lambda v: (v.history[:1] == ("does not join",),
+                                               v.history[:1] != ("not judged",),
                                                v.size)), []
     best = min(finite, key=lambda v: v.cv)
     band = max(best.cv + best.cv_se, TIE)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import sympy as sp
 
+from .._core.budget import expired, passed, progress
 from .._core.library import feature_expressions
 from .._core.parallel import map_on, shared_values
 from .._core.timing import stage
@@ -159,7 +160,8 @@ def first_fits(proposals, ctx: Context, options, trials=()) -> list[Trial]:
     still be running in the other process); its give-up checks are recorded
     (:class:`.least_squares.GiveUpWatch`) and it is kept exactly when the one-by-one bound
     would have given the same fit, else that fit is made again. So the result is the
-    loop's, fit for fit, either way.
+    loop's, fit for fit, either way. Once the discovery's ``max_time`` is spent, the
+    proposals not yet started are left out (recorded, :mod:`.._core.budget`).
     """
     proposals = list(proposals)
     before = min((t.fit.residual_variance for t in trials), default=np.inf)
@@ -171,14 +173,22 @@ def first_fits(proposals, ctx: Context, options, trials=()) -> list[Trial]:
             earlier = earlier[~np.isnan(earlier)]
             return min(before, float(earlier.min())) if earlier.size else before
 
+        if expired():
+            return None, None
+        progress(f"first fit {k + 1} of {len(proposals)}: {proposals[k].origin} "
+                 f"({proposals[k].n_states} hidden)")
         watch = GiveUpWatch()
         trial = first_fit(proposals[k], ctx, options, known, watch)
         found[k] = np.inf if trial is None else trial.fit.residual_variance
         return trial, watch
 
     out, best = [], before
+    left = 0
     for p, (trial, watch) in zip(proposals, map_on(options.device, side_by_side,
                                                    range(len(proposals))), strict=True):
+        if watch is None:  # max_time was spent before it started
+            left += 1
+            continue
         if not watch.same_under(HOPELESS * max(best, 1.0)):
             trial = first_fit(p, ctx, options, best)  # the one-by-one bound stops it sooner
         elif trial is not None:
@@ -186,6 +196,8 @@ def first_fits(proposals, ctx: Context, options, trials=()) -> list[Trial]:
         if trial is not None:
             out.append(trial)
             best = min(best, trial.fit.residual_variance)
+    if left:
+        passed(f"{left} of {len(proposals)} hypotheses not fitted")
     return out
 
 
@@ -199,7 +211,10 @@ def selected_and_scored(trial: Trial):
     compute it, :mod:`latentsindy._core.parallel`): (fit, history, score, standard
     error, held-out errors per segment) after stepwise selection and the held-out
     score, or why there is no score
-    ("does not join", "blew up")."""
+    ("does not join", "blew up", "not judged": the discovery's ``max_time`` was spent
+    before it started)."""
+    if expired():
+        return "not judged"
     # the pool includes the system's own terms, so a term swapped out can come back
     pool = trial.candidates | trial.fit.system.free
     try:

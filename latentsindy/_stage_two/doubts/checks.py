@@ -18,10 +18,15 @@ REPRODUCTION_SLACK = 0.15
 SIGNIFICANCE = 2.0  # a kept coefficient should be this many standard errors from zero
 
 
-def doubts(score, score_se, refinement, terms, hidden):
-    """The checks a refined system fails, each as a sentence with its remedy."""
+def doubts(score, score_se, refinement, terms, hidden, unscored=None):
+    """The checks a refined system fails, each as a sentence with its remedy;
+    ``unscored`` is why it has no score ("not judged": ``max_time`` ran out first)."""
     found = []
-    if not (np.isfinite(score) and np.isfinite(score_se)):
+    if unscored == "not judged":
+        found.append(Doubt("not scored", "the closed system was not scored on held-out "
+                           "data (max_time was spent first): it was not checked against "
+                           "the data"))
+    elif not (np.isfinite(score) and np.isfinite(score_se)):
         found.append(Doubt("not scored",
                      "the closed system could not be scored on held-out data (its "
                      "integration blew up, or its hidden states jump between integration "

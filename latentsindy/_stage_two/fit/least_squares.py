@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..._core.budget import expired, passed
 from .normal_equations import solve
 from .shooting import BlowUp
 
@@ -59,12 +60,16 @@ def levenberg_marquardt(problem, system, values, starts, weights, rho, max_itera
     lowers the cost by less than ``tolerance`` (relative), when the Gauss-Newton
     model's remaining decrease is below ``resolution`` (noise variances; no
     integration is spent on it), when no step lowers the cost, or when the data misfit
-    is above ``give_up()`` after half the iterations (``watch`` records that check)."""
+    is above ``give_up()`` after half the iterations (``watch`` records that check), or
+    when the discovery's ``max_time`` is spent (:mod:`.._core.budget`)."""
     watch = GiveUpWatch() if watch is None else watch
     n_free = system.n_free
     eq = problem.equations(system.with_free(values), starts, weights, rho)
     mu, converged, iterations, accepted = 1e-3, False, 0, True
     while iterations < max_iterations:
+        if expired():  # max_time is spent: the fit so far
+            passed("fits stopped before converging")
+            break
         if accepted:  # a new point: its matrix serves every damped solve there
             a = eq.matrix()
             diag = a.diagonal()

@@ -26,6 +26,7 @@ import numpy as np
 import scipy.sparse as sps
 import scipy.sparse.linalg as spla
 
+from ..._core.budget import expired, passed
 from ..._core.timing import timed
 from ..context import MARGIN
 from .field import ParametricSystem
@@ -59,6 +60,9 @@ def select_terms(problem: Problem, fit: Fit, candidates, max_steps=MAX_STEPS):
     price = _price(problem, fit, candidates)
     history, tabu = [], set()
     for _ in range(max_steps):
+        if expired():  # max_time is spent: the terms selected so far
+            passed("term selection")
+            break
         s2 = max(fit.residual_variance, 1.0)
         model = _Quadratic(problem, fit, candidates & ~fit.system.free)
         base = _bic(fit, s2, price)

@@ -1,0 +1,73 @@
+"""A discovery's time budget (``max_time``) and its progress lines.
+
+``with budget(max_time, verbose):`` opens one; inside it :func:`expired` says whether
+the time is spent, :func:`passed` records a step left out because of it (what was not
+judged, said in the result's doubt) and :func:`progress` prints which step is running
+and how many hypotheses remain (with ``verbose``). Outside a budget nothing expires
+and nothing is printed. Stage one's structure search checks the budget before every
+climbing step, stage two before every hypothesis, every term-selection step and every
+Levenberg-Marquardt iteration, so a call returns soon after its deadline with the best
+system found so far; stage one's training (a fixed number of steps, seconds on most
+data) always completes.
+
+The deadline is a point on the monotonic clock, so a forked helper process
+(:mod:`.parallel`) reads the same one; steps passed over in a helper are also passed
+over in the parent (which records them), since both check the same clock.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import time
+from contextvars import ContextVar
+from dataclasses import dataclass, field
+
+
+@dataclass
+class Budget:
+    max_time: float | None
+    verbose: bool
+    start: float = field(default_factory=time.monotonic)
+    passed: list[str] = field(default_factory=list)
+
+    def elapsed(self) -> float:
+        return time.monotonic() - self.start
+
+    def expired(self) -> bool:
+        return self.max_time is not None and self.elapsed() > self.max_time
+
+
+_active: ContextVar[Budget | None] = ContextVar("latentsindy_budget", default=None)
+
+
+@contextlib.contextmanager
+def budget(max_time: float | None, verbose: bool = False):
+    """A budget of ``max_time`` wall seconds (None: no limit) for the block."""
+    state = Budget(max_time, verbose)
+    token = _active.set(state)
+    try:
+        yield state
+    finally:
+        _active.reset(token)
+
+
+def expired() -> bool:
+    """Whether the active budget is spent (never outside a budget)."""
+    state = _active.get()
+    return state is not None and state.expired()
+
+
+def passed(what: str) -> None:
+    """Record a step left out because the budget is spent (once per kind of step)."""
+    state = _active.get()
+    if state is not None and what not in state.passed:
+        state.passed.append(what)
+
+
+def progress(message: str) -> None:
+    """Print ``message`` with the time spent so far, when the budget is verbose."""
+    state = _active.get()
+    if state is not None and state.verbose:
+        print(f"[latentsindy {state.elapsed():6.1f} s] {message}", file=sys.stderr,
+              flush=True)
