@@ -65,9 +65,10 @@ def passed(what: str) -> None:
         state.passed.append(what)
 
 
-def progress(message: str) -> None:
-    """Print ``message`` with the time spent so far, when the budget is verbose."""
+def progress(message) -> None:
+    """Print ``message`` (a str, or a function that returns it: made only when printed)
+    with the time spent so far, when the budget is verbose."""
     state = _active.get()
     if state is not None and state.verbose:
-        print(f"[latentsindy {state.elapsed():6.1f} s] {message}", file=sys.stderr,
-              flush=True)
+        text = message() if callable(message) else message
+        print(f"[latentsindy {state.elapsed():6.1f} s] {text}", file=sys.stderr, flush=True)

@@ -175,8 +175,8 @@ def first_fits(proposals, ctx: Context, options, trials=()) -> list[Trial]:
 
         if expired():
             return None, None
-        progress(f"first fit {k + 1} of {len(proposals)}: {proposals[k].origin} "
-                 f"({proposals[k].n_states} hidden)")
+        progress(lambda: f"first fit {k + 1} of {len(proposals)}: {proposals[k].origin} "
+                         f"({proposals[k].n_states} hidden)")
         watch = GiveUpWatch()
         trial = first_fit(proposals[k], ctx, options, known, watch)
         found[k] = np.inf if trial is None else trial.fit.residual_variance
