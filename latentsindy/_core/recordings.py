@@ -88,10 +88,10 @@ def split(x, t, *, gaps: str = "split", outliers: str = "discount", what: str = 
         curve and listed, :mod:`.spikes`) or ``"keep"``
 
     Pieces shorter than :data:`MIN_SEGMENT` samples are dropped with a note, unless
-    none is that long: a panel of short recordings (subjects, batches, trials) is then
-    used whole when at least two of its pieces have :data:`MIN_PANEL` samples or more
-    and they hold twice :data:`MIN_SEGMENT` together (the law is shared, each piece
-    adds its own hidden start).
+    none is that long: then every piece of :data:`MIN_PANEL` samples or more is used
+    (a panel of short recordings, subjects, batches or trials, or one short
+    recording: the law is shared, each piece adds its own hidden start; stage two
+    searches without stage one and the result says so).
 
     Returns
     -------
@@ -164,16 +164,16 @@ def split(x, t, *, gaps: str = "split", outliers: str = "discount", what: str = 
                 "discounted as isolated spikes (see the result's data_use). Check the "
                 "recording if that is not what you expect.")
     usable = [n for n in short if n >= MIN_PANEL]
-    if not segments and _floor > MIN_PANEL and len(usable) >= 2 and sum(usable) >= 2 * _floor:
+    if not segments and _floor > MIN_PANEL and usable:
         return split(x, t, gaps=gaps, outliers=outliers, what=what, _floor=MIN_PANEL)
     if not segments:
         raise ValueError(
-            f"No part of {what} is long enough to use: at least {MIN_SEGMENT} samples without "
-            f"a gap are needed, or a panel of recordings of at least {MIN_PANEL} samples each "
-            f"holding {2 * MIN_SEGMENT} together (a law's parameters and each recording's "
-            "hidden start need more samples than they are; 8 per cycle of the fastest "
-            "oscillation over a few cycles give a confident law, hundreds of samples a "
-            f"better one), and {'; '.join(dropped)}.")
+            f"No part of {what} is long enough to use: at least {MIN_PANEL} samples without "
+            f"a gap are needed in a recording ({MIN_SEGMENT} for stage one; a law's "
+            "parameters and each recording's hidden start need more samples than they "
+            "are: twice as many give an answer to check, 8 per cycle of the fastest "
+            "oscillation over a few cycles a confident law, hundreds of samples a better "
+            f"one), and {'; '.join(dropped)}.")
     for note in unused_notes:
         warnings.warn(note, UserWarning, stacklevel=4)  # at the discover_hidden call
     use = DataUse(len(recordings), len(segments), int(sum(len(s) for s in segments)),

@@ -49,7 +49,7 @@ def no_terms(support, ctx) -> bool:
 
 
 def doubt(panel: bool) -> Doubt:
-    why = ("no recording is long enough for stage one (a panel of short recordings)"
+    why = ("no recording is long enough for stage one (16 samples between gaps)"
            if panel else "stage one kept no term although the data move (its "
            "differentiator's window spans much of a cycle: too few samples per cycle)")
     return Doubt("without stage one", f"{why}, so this law was found without it: only "

@@ -96,9 +96,9 @@ def test_single_sample():
 
 
 def test_shorter_than_a_law_and_its_start_need():
-    with pytest.raises(ValueError, match=r"at least 16 samples without a gap.*8 per cycle.*"
-                                         r"with 12 samples"):
-        discover(series()[0][:12])
+    with pytest.raises(ValueError, match=r"at least 8 samples without a gap.*16 for stage "
+                                         r"one.*8 per cycle.*with 7 samples"):
+        discover(series()[0][:7])
 
 
 def test_all_nan_column():

@@ -56,18 +56,28 @@ def test_a_panel_of_short_recordings_is_pooled_not_refused():
 
 
 def test_panel_floor_is_about_information():
-    """Pieces of 8-15 samples are used when no piece reaches 16, at least two have 8
-    or more and they hold 32 together; one short recording, or two of 8, are refused
-    with what would be enough."""
+    """Pieces of 8-15 samples are used when no piece reaches 16 (a panel, or one short
+    recording); pieces of 7 are refused with what would be enough."""
     xs, ts = _panel(6)
     segs, _, use = recordings.split(xs, ts)
     assert use.segments == 6 and [len(s) for s in segs] == [11] * 6
-    with pytest.raises(ValueError, match=r"at least 16 samples without a gap are needed, or a "
-                                         r"panel of recordings of at least 8 samples each "
-                                         r"holding 32 together"):
-        recordings.split(xs[:1], ts[:1])
-    with pytest.raises(ValueError, match="holding 32 together"):
-        recordings.split([x[:8] for x in xs[:2]], [t[:8] for t in ts[:2]])
+    segs, _, use = recordings.split(xs[:1], ts[:1])
+    assert use.segments == 1 and use.samples == 11
+    with pytest.raises(ValueError, match=r"at least 8 samples without a gap are needed in a "
+                                         r"recording \(16 for stage one"):
+        recordings.split([x[:7] for x in xs[:3]], [t[:7] for t in ts[:3]])
+
+
+def test_one_short_recording_is_an_answer_flagged_not_a_refusal():
+    """One recording of 11 samples: searched by stage two alone, and flagged so."""
+    xs, ts = _panel(1)
+    result = discover_hidden(xs, ps.PolynomialLibrary(degree=3), t=ts, feature_names=["x"],
+                             verbose=False)
+    assert result.data_use.segments == 1 and result.data_use.samples == 11
+    assert "without stage one" in [dd.kind for dd in result.doubts]
+    assert "16 samples between gaps" in result.doubts[[d.kind for d in result.doubts].index(
+        "without stage one")]
+    assert not result.confident
 
 
 def test_no_candidate_fitted_by_integration_is_an_unchecked_answer(monkeypatch):
