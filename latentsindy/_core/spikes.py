@@ -119,17 +119,19 @@ def _spikes(x, t, w, gain):
     limit[2:-2] = np.maximum(Z * s, FLOOR * float(np.std(x)))
     limit[:2], limit[-2:] = limit[2], limit[-3]
     found, x = [], x.copy()
-    for k in np.argsort(-np.abs(r)):
+    candidates = np.flatnonzero(np.abs(r) > limit)
+    for k in candidates[np.argsort(-np.abs(r[candidates]))]:
         if abs(r[k]) <= limit[k] or k in found:
             continue  # (residuals change as spikes beside them are replaced)
         for rows in _sets(k, len(x)):
             if found and set(rows) & set(found):
                 continue
-            trial = _replaced(x, t, w, gain, rows, limit)
-            if trial is not None:
-                x = trial
+            values = _replaced(x, t, w, gain, rows, limit)
+            if values is not None:
+                x[rows] = values
                 found += rows
-                r = _residuals(x, w, gain)
+                for i in range(max(2, rows[0] - 2), min(len(x) - 3, rows[-1] + 2) + 1):
+                    r[i] = (x[i] - _predict(x, w, i)) / gain[i - 2]
                 break
     return sorted(found), x
 
@@ -150,14 +152,15 @@ def _sets(k, n):
 
 
 def _replaced(x, t, w, gain, rows, limit):
-    """``x`` with ``rows`` replaced by the least-squares cubic through the samples within
+    """The values of ``rows`` on the least-squares cubic through the samples within
     :data:`_HALF` of them, or None where they are not isolated spikes: those samples
     lie on the cubic (within half the limit: its residuals' spread is about 0.7 noise
     levels, so 3.5 spreads), each of ``rows`` is off it beyond the limit
     (two adjacent ones in opposite directions: two samples off to one side are a narrow
     feature of the curve) and, replaced, every sample from two before to two after is
     on the curve (its residual below half the limit), as the module says."""
-    lo, hi = max(0, rows[0] - _HALF), min(len(x), rows[-1] + _HALF + 1)
+    n = len(x)
+    lo, hi = max(0, rows[0] - _HALF), min(n, rows[-1] + _HALF + 1)
     window = [i for i in range(lo, hi) if i not in rows]
     if len(window) < 6:
         return None
@@ -173,8 +176,9 @@ def _replaced(x, t, w, gain, rows, limit):
         return None
     if len(rows) == 2 and rows[1] - rows[0] == 1 and off[0] * off[1] > 0:
         return None
-    trial = x.copy()
-    trial[rows] = at
-    near = range(max(2, rows[0] - 2), min(len(x) - 3, rows[-1] + 2) + 1)
-    after = [abs(trial[i] - _predict(trial, w, i)) / gain[i - 2] for i in near]
-    return trial if max(after) < min(limit[rows]) / 2 else None
+    local = x[lo:hi].copy()  # (the residuals below reach two samples further at most)
+    local[np.asarray(rows) - lo] = at
+    after = [abs(local[i - lo] - w[i - 2] @ local[[i - 2 - lo, i - 1 - lo, i + 1 - lo,
+                                                   i + 2 - lo]]) / gain[i - 2]
+             for i in range(max(2, rows[0] - 2), min(n - 3, rows[-1] + 2) + 1)]
+    return at if max(after) < min(limit[rows]) / 2 else None
