@@ -262,6 +262,30 @@ def test_large_arrow_systems_are_solved_through_their_banded_starts(n_free):
                                rtol=1e-9, atol=1e-11)
 
 
+def test_term_selection_solves_large_starts_blocks_through_their_band():
+    """The starts' block of 400 segments, as term selection eliminates it: through the
+    band, the same as a sparse LU; a block that is not banded is solved by the LU."""
+    import scipy.sparse as sps
+
+    from latentsindy._stage_two.fit.terms import _solve_starts
+
+    rng = np.random.default_rng(3)
+    k, n = 400, 2
+    eq = NormalEquations(0, k, n)
+    eq.add(rng.normal(size=(k, 9, n)), rng.normal(size=(k, 9)), np.arange(k)[:, None])
+    eq.add(rng.normal(size=(k - 1, n, 2 * n)), rng.normal(size=(k - 1, n)),
+           np.stack([np.arange(k - 1), np.arange(1, k)], axis=1))
+    block = eq.matrix().tocsc()
+    rhs = rng.normal(size=(block.shape[0], 4))
+    np.testing.assert_allclose(_solve_starts(block, rhs), np.linalg.solve(block.toarray(), rhs),
+                               rtol=1e-8, atol=1e-10)
+    far = sps.lil_matrix(block.shape)
+    far[0, -1] = far[-1, 0] = 0.1
+    wide = (block + far.tocsc()).tocsc()
+    np.testing.assert_allclose(_solve_starts(wide, rhs), np.linalg.solve(wide.toarray(), rhs),
+                               rtol=1e-8, atol=1e-10)
+
+
 def test_normal_equations_dense_and_sparse_assemble_the_same_system(monkeypatch):
     """The arrow-structured J^T J and J^T r, assembled densely (small systems) and
     sparsely (large ones), equal the products of the whole Jacobian written out."""

@@ -116,19 +116,27 @@ def _bordered_solve(matrix, rhs, p):
     complement cost O(segments), where a general sparse LU of the bordered matrix grew
     much faster (4 ms a solve at 400 segments). Raises LinAlgError where the block is
     not positive definite or is banded more widely than :data:`MAX_BAND`."""
-    ss = matrix[p:, p:].tocoo()
-    upper = ss.row <= ss.col
-    band = int(np.max(ss.col[upper] - ss.row[upper], initial=0))
-    if band > MAX_BAND:
-        raise np.linalg.LinAlgError("starts' block not banded")
-    packed = np.zeros((band + 1, ss.shape[0]))
-    np.add.at(packed, (band + ss.row[upper] - ss.col[upper], ss.col[upper]), ss.data[upper])
-    factor = cholesky_banded(packed)
+    factor = banded_factor(matrix[p:, p:])
     coupling = matrix[p:, :p].toarray()
     columns = rhs.reshape(len(rhs), -1)
-    inner = cho_solve_banded((factor, False), np.column_stack([coupling, columns[p:]]))
+    inner = cho_solve_banded(factor, np.column_stack([coupling, columns[p:]]))
     schur = matrix[:p, :p].toarray() - coupling.T @ inner[:, :p]
     x_free = np.linalg.solve(schur, columns[:p] - coupling.T @ inner[:, p:]) if p else \
         np.zeros((0, columns.shape[1]))
     x_starts = inner[:, p:] - inner[:, :p] @ x_free
     return np.concatenate([x_free, x_starts]).reshape(rhs.shape)
+
+
+def banded_factor(matrix):
+    """The banded Cholesky factor of a sparse symmetric positive definite ``matrix``
+    (for ``scipy.linalg.cho_solve_banded``); raises LinAlgError where it is banded more
+    widely than :data:`MAX_BAND` or is not positive definite to working precision."""
+    coo = matrix.tocoo()
+    upper = coo.row <= coo.col
+    band = int(np.max(coo.col[upper] - coo.row[upper], initial=0))
+    if band > MAX_BAND:
+        raise np.linalg.LinAlgError("not banded")
+    packed = np.zeros((band + 1, coo.shape[0]))
+    np.add.at(packed, (band + coo.row[upper] - coo.col[upper], coo.col[upper]),
+              coo.data[upper])
+    return cholesky_banded(packed), False

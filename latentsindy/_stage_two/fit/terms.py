@@ -25,11 +25,13 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sps
 import scipy.sparse.linalg as spla
+from scipy.linalg import cho_solve_banded
 
 from ..._core.budget import expired, passed
 from ..._core.timing import timed
 from ..context import MARGIN
 from .field import ParametricSystem
+from .normal_equations import DENSE, banded_factor
 from .refine import Fit, Problem
 from .shooting import BlowUp
 
@@ -218,6 +220,18 @@ def _exact_refit(problem, fit, model, keep):
     return problem.fit(new, fit.starts)
 
 
+def _solve_starts(a_ss, rhs):
+    """``a_ss^-1 rhs`` for the starts' block of the normal equations: by a sparse LU, or
+    where the block is large (long recordings: more than ``DENSE`` unknowns), through
+    its band (a segment touches only its neighbours) where it has one."""
+    if a_ss.shape[0] > DENSE:
+        try:
+            return cho_solve_banded(banded_factor(a_ss), rhs)
+        except np.linalg.LinAlgError:
+            pass
+    return spla.splu(a_ss.tocsc()).solve(rhs)
+
+
 class _Quadratic:
     """The misfit around ``fit`` as a quadratic in the coefficients (current free ones
     and the candidates at zero), starts eliminated."""
@@ -236,8 +250,8 @@ class _Quadratic:
         a_ss = a[p:, p:].tocsc()
         if a_ss.shape[0]:
             ridge = 1e-12 * max(float(a_ss.diagonal().max()), 1e-300)
-            lu = spla.splu((a_ss + ridge * sps.identity(a_ss.shape[0])).tocsc())
-            x = lu.solve(np.column_stack([a_ps.T, g[p:]]))
+            x = _solve_starts(a_ss + ridge * sps.identity(a_ss.shape[0]),
+                              np.column_stack([a_ps.T, g[p:]]))
             self.a = a_pp - a_ps @ x[:, :p]
             self.g = g[:p] - a_ps @ x[:, p]
         else:
