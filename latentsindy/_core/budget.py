@@ -11,8 +11,9 @@ system found so far; stage one's training (a fixed number of steps, seconds on m
 data) always completes.
 
 The deadline is a point on the monotonic clock, so a forked helper process
-(:mod:`.parallel`) reads the same one; steps passed over in a helper are also passed
-over in the parent (which records them), since both check the same clock.
+(:mod:`.parallel`) reads the same one. What a helper records is lost with it, so
+``discover_hidden`` flags a result whenever the deadline passed during the call, with
+what this process recorded.
 """
 
 from __future__ import annotations

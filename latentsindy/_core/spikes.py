@@ -118,18 +118,18 @@ def _spikes(x, t, w, gain):
     limit = np.zeros(len(x))
     limit[2:-2] = np.maximum(Z * s, FLOOR * float(np.std(x)))
     limit[:2], limit[-2:] = limit[2], limit[-3]
-    found, x = [], x.copy()
+    found, x = set(), x.copy()
     candidates = np.flatnonzero(np.abs(r) > limit)
     for k in candidates[np.argsort(-np.abs(r[candidates]))]:
         if abs(r[k]) <= limit[k] or k in found:
             continue  # (residuals change as spikes beside them are replaced)
         for rows in _sets(k, len(x)):
-            if found and set(rows) & set(found):
+            if found.intersection(rows):
                 continue
             values = _replaced(x, t, w, gain, rows, limit)
             if values is not None:
                 x[rows] = values
-                found += rows
+                found.update(rows)
                 for i in range(max(2, rows[0] - 2), min(len(x) - 3, rows[-1] + 2) + 1):
                     r[i] = (x[i] - _predict(x, w, i)) / gain[i - 2]
                 break

@@ -159,17 +159,19 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
                                   differentiation_method=differentiation_method,
                                   support=support)
     if max_time is not None:
-        val.check_positive(max_time, "max_time")
+        max_time = val.check_positive(max_time, "max_time")
     with recording() as seconds, budget(max_time, verbose) as spent:
         result = _discover(x_observed, t, feature_names, hidden_terms, hidden_names,
                            closure_library, stage_one, n_samples, refine, gaps, outliers,
                            max_hidden, device, seed, verbose)
-    if spent.passed:
+    if spent.passed or spent.expired():  # (a step cut short in the helper process, or
+        # the final checks, records nothing here)
+        left = "; ".join(spent.passed) or "the final checks ran on fits cut short"
         result = dataclasses.replace(result, doubts=result.doubts + (Doubt(
             "time budget", f"max_time={max_time:g} s was spent ({spent.elapsed():.1f} s "
-            f"used) before the judgement ended; left out: {'; '.join(spent.passed)}. The "
-            "system shown is the best found by then. Raise max_time (or leave it unset) "
-            "for a full judgement"),))
+            f"used) before the judgement ended; left out: {left}. The system shown is the "
+            "best found by then. Raise max_time (or leave it unset) for a full "
+            "judgement"),))
     return dataclasses.replace(result, timings=dict(seconds))
 
 

@@ -231,11 +231,11 @@ def rank(verdicts):
             unique.append(v)  # the same final system reached twice counts once
     verdicts = unique
     finite = [v for v in verdicts if v.scored and np.isfinite(v.cv)]
-    if not finite:  # a fit that is no trajectory of its system comes last; a contender
-        # left unscored by max_time before those rejected against it
-        return sorted(verdicts, key=lambda v: (v.history[:1] == ("does not join",),
-                                               v.history[:1] != ("not judged",),
-                                               v.size)), []
+    if not finite:  # a fit that is no trajectory of its system comes last; contenders
+        # left unscored by max_time first, the best in-sample misfit first among them
+        return sorted(verdicts, key=lambda v: (
+            v.history[:1] == ("does not join",), v.history[:1] != ("not judged",),
+            v.cv if v.history[:1] == ("not judged",) else v.size)), []
     best = min(finite, key=lambda v: v.cv)
     band = max(best.cv + best.cv_se, TIE)
     inside = [v for v in finite

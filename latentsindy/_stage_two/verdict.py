@@ -189,7 +189,7 @@ def first_fits(proposals, ctx: Context, options, trials=()) -> list[Trial]:
         if watch is None:  # max_time was spent before it started
             left += 1
             continue
-        if not watch.same_under(HOPELESS * max(best, 1.0)):
+        if not watch.same_under(HOPELESS * max(best, 1.0)) and not expired():
             trial = first_fit(p, ctx, options, best)  # the one-by-one bound stops it sooner
         elif trial is not None:
             trial.proposal = p  # the caller's own (a helper's trial is a copy)
@@ -224,6 +224,8 @@ def selected_and_scored(trial: Trial):
         cv, se, errors = cross_validate(trial.problem, fit)
     except BlowUp:
         return "blew up"
+    if expired():  # the folds' refits may have been cut short: not a held-out score
+        return "not judged"
     return fit, tuple(history), cv, se, errors
 
 

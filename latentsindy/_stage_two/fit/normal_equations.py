@@ -99,8 +99,9 @@ def solve(matrix, rhs, damping=None, border=None):
     if border is not None:
         try:
             return _bordered_solve(matrix, np.asarray(rhs, float), border)
-        except np.linalg.LinAlgError:
-            pass  # not positive definite to working precision: the general solver
+        except (np.linalg.LinAlgError, ValueError):
+            pass  # not positive definite to working precision (or not finite): the
+            # general solver
     return spsolve(matrix, rhs)
 
 

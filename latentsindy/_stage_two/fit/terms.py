@@ -227,7 +227,7 @@ def _solve_starts(a_ss, rhs):
     if a_ss.shape[0] > DENSE:
         try:
             return cho_solve_banded(banded_factor(a_ss), rhs)
-        except np.linalg.LinAlgError:
+        except (np.linalg.LinAlgError, ValueError):
             pass
     return spla.splu(a_ss.tocsc()).solve(rhs)
 
