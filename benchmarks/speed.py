@@ -74,6 +74,14 @@ def one(family, index, noise, span=1):
             "confident": result.confident, "samples": len(d.t)}
 
 
+def median_split(rows):
+    """The stages' median seconds over ``rows`` (``one``'s), largest first, as text."""
+    stages = sorted({k for r in rows for k in r["timings"]})
+    split = {k: float(np.median([r["timings"].get(k, 0.0) for r in rows])) for k in stages}
+    return ", ".join(f"{k} {v:.1f}" for k, v in sorted(split.items(), key=lambda kv: -kv[1])
+                     if v >= 0.1)
+
+
 def scaling(families, draws, noise, span=10):
     """Each draw as drawn and over ``span`` times its span (same density): the two
     calls' times and their ratio."""
@@ -91,10 +99,7 @@ def scaling(families, draws, noise, span=10):
     for family in families:
         rs = [r for r in rows if r[0] == family]
         ratios = [r[3]["wall"] / r[2]["wall"] for r in rs]
-        stages = sorted({k for r in rs for k in r[3]["timings"]})
-        split = {k: float(np.median([r[3]["timings"].get(k, 0.0) for r in rs])) for k in stages}
-        text = ", ".join(f"{k} {v:.1f}" for k, v in sorted(split.items(), key=lambda kv: -kv[1])
-                         if v >= 0.1)
+        text = median_split([r[3] for r in rs])
         print(f"| {family} | {len(rs)} | {np.median([r[2]['wall'] for r in rs]):.1f} | "
               f"{np.median([r[3]['wall'] for r in rs]):.1f} | {np.median(ratios):.1f} | "
               f"{max(ratios):.1f} | {text} |")
@@ -114,10 +119,7 @@ def main(families, draws, noise, one_process=False):
           "fits (s) | median ratio | median split (s) |\n|---|---|---|---|---|---|---|")
     for family in families:
         rs = [r for r in rows if r["family"] == family]
-        stages = sorted({k for r in rs for k in r["timings"]})
-        split = {k: float(np.median([r["timings"].get(k, 0.0) for r in rs])) for k in stages}
-        text = ", ".join(f"{k} {v:.1f}" for k, v in sorted(split.items(), key=lambda kv: -kv[1])
-                         if v >= 0.1)
+        text = median_split(rs)
         print(f"| {family} | {len(rs)} | {np.median([r['wall'] for r in rs]):.1f} | "
               f"{max(r['wall'] for r in rs):.1f} | {np.median([r['pysindy'] for r in rs]):.3f} | "
               f"{np.median([r['ratio'] for r in rs]):.0f} | {text} |")
