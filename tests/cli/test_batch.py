@@ -77,13 +77,13 @@ def test_a_dask_cluster_gives_the_local_results_and_keeps_them_when_a_worker_die
 
     t = recordings["worm1"][0]
     data = {k: x for k, (_, x) in recordings.items()}
-    data |= {"dies": data["worm1"][:100], "short": data["worm1"][:12]}  # 12: too few
+    data |= {"dies": data["worm1"][:100], "short": data["worm1"][:6]}  # 6: too few
     # Dask retries a task whose worker died (three times by default), then reports it
     # as KilledWorker
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                       dashboard_address=None) as cluster:
         runs = discover_many(data, DiesOnShortRecordings(degree=3, include_bias=False),
-                             t={"worm1": t, "worm2": t, "dies": t[:100], "short": t[:12]},
+                             t={"worm1": t, "worm2": t, "dies": t[:100], "short": t[:6]},
                              scheduler=cluster.scheduler_address, out=tmp_path,
                              feature_names=["x"])
     assert [r.name for r in runs] == ["worm1", "worm2", "dies", "short"]
@@ -107,8 +107,8 @@ def test_a_failed_run_is_recorded_and_the_others_go_on(recordings):
     """Local workers: each failure is recorded with its message and the batch goes on
     (a good run beside failures: the Dask test)."""
     t, x = recordings["worm1"]
-    runs = discover_many({"unmeasured": np.full_like(x, np.nan), "short": x[:10]}, LIBRARY,
-                         t={"unmeasured": t, "short": t[:10]}, feature_names=["x"], n_jobs=2)
+    runs = discover_many({"unmeasured": np.full_like(x, np.nan), "short": x[:6]}, LIBRARY,
+                         t={"unmeasured": t, "short": t[:6]}, feature_names=["x"], n_jobs=2)
     unmeasured, short = runs
     assert unmeasured.result is None and short.result is None
     assert unmeasured.error.startswith("ValueError: x_observed has state column(s) [0] "
