@@ -2,7 +2,8 @@
 
 ``with budget(max_time, verbose):`` opens one; inside it :func:`expired` says whether
 the time is spent, :func:`passed` records a step left out because of it (what was not
-judged, said in the result's doubt) and :func:`progress` prints which step is running
+judged, said in the result's doubt), :func:`spent` does both for a step about to
+start, and :func:`progress` prints which step is running
 and how many hypotheses remain (with ``verbose``). Outside a budget nothing expires
 and nothing is printed. Stage one's structure search checks the budget before every
 climbing step, stage two before every hypothesis, every term-selection step and every
@@ -57,6 +58,14 @@ def expired() -> bool:
     """Whether the active budget is spent (never outside a budget)."""
     state = _active.get()
     return state is not None and state.expired()
+
+
+def spent(step: str) -> bool:
+    """Whether the active budget is spent; if so, ``step`` is recorded as left out."""
+    if expired():
+        passed(step)
+        return True
+    return False
 
 
 def passed(what: str) -> None:

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._core.budget import expired, passed
+from .._core.budget import spent
 from .._core.parallel import available, forked_map
 from .._core.threads import single_thread
 from .vcm_fit import EquationFit, EquationModel
@@ -46,6 +46,8 @@ LOG_PRIOR_ODDS = np.log(20.0)  # price of one more term, or one more varying ter
 # neighbours fitted by two processes (side_by_side): a fork and the fits' return cost a
 # few hundredths of a second.
 SIDE_BY_SIDE = 0.15
+# what the discovery's max_time leaves out when it runs out during the search
+_STOPPED = "stage one's structure search (stopped where it was)"
 
 
 @dataclass(frozen=True)
@@ -135,7 +137,7 @@ class StructureSearch:
         if not self.free or not fit.varying:
             return fit
         while True:
-            if _spent():
+            if spent(_STOPPED):
                 return fit
             cheap = []
             for j in fit.constant:
@@ -174,7 +176,7 @@ class StructureSearch:
         (none where the discovery's ``max_time`` ran out: the ascent stops there)."""
         seconds = self.pace.get(adaptive, 0.0)  # per neighbour, at the last step's pace
         while True:
-            if _spent():
+            if spent(_STOPPED):
                 return fit, []
             step = self.neighbours(fit)
             begin = time.perf_counter()
@@ -215,7 +217,7 @@ class StructureSearch:
         for f in found:
             if not any(same_structure(f, o) for o in [best, *others]):
                 others.append(f)
-        if not others or _spent():
+        if not others or spent(_STOPPED):
             return (*ends[0], None)
         cache = dict(self.model._cache)
         rival = max((self.admissible(f.support, f.varying, True) for f in others),
@@ -239,22 +241,13 @@ class StructureSearch:
         proposed = set(proposed)
         reduced = self.earned(fit, proposed)
         if reduced is not fit:
-            fit, near = reduced, [] if _spent() else [
+            fit, near = reduced, [] if spent(_STOPPED) else [
                 self.admissible(s, v, True, reduced) for s, v in self.neighbours(reduced)]
         rivals = tuple(f for f in near if self._is_rival(f, fit, proposed))
         # the other climb's end, unless it is the choice or among its rivals already
         apart = () if other is None or any(same_structure(other, f)
                                            for f in (fit, *rivals)) else (other,)
         return EquationChoice(fit, rivals, len(self.model._cache), apart)
-
-
-def _spent() -> bool:
-    """Whether the discovery's ``max_time`` ran out (recorded): the search stops where
-    it is, with the best structure found so far."""
-    if expired():
-        passed("stage one's structure search (stopped where it was)")
-        return True
-    return False
 
 
 def same_structure(a, b) -> bool:

@@ -18,7 +18,7 @@ from dataclasses import replace
 import numpy as np
 from scipy import stats
 
-from .._core.budget import expired, passed, progress
+from .._core.budget import expired, passed, progress, spent
 from .._core.parallel import map_on
 from . import restate
 from .context import NESTED_TRIGGER, TIE, Context, floor_noise
@@ -59,14 +59,14 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     trials = first_fits(proposals, ctx, options)
     best = min((t.fit.residual_variance for t in trials), default=np.inf)
     noise = _noise_from_fit(trials, best) if options.noise is None else None
-    if noise is not None and _time_left("the judgement in the noise level of the best fit"):
+    if noise is not None and not spent("the judgement in the noise level of the best fit"):
         return judge_all(proposals, ctx, replace(options, noise=noise), max_hidden, nested)
-    if best > RATE_TRIGGER and max_hidden >= 2 and _time_left("hidden states' rates"):
+    if best > RATE_TRIGGER and max_hidden >= 2 and not spent("hidden states' rates"):
         progress("no first-order law reproduces the data: hidden states' rates")
         trials += first_fits(_rate_candidates(proposals, ctx), ctx, options, trials)
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
     if (nested and best > NESTED_TRIGGER and max_hidden >= 2
-            and _time_left("nested hidden states")):
+            and not spent("nested hidden states")):
         progress("the best still misses the data: nested hidden states")
         parents = _distinct_parents(trials, NESTED_PARENTS)
         trials += first_fits([p for parent in parents
@@ -134,15 +134,6 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
                 verdicts = [v for v in verdicts if v is not lifted]
             return rank(verdicts + [reduced])
     return ordered, uncertain
-
-
-def _time_left(step: str) -> bool:
-    """Whether ``step`` may start: the discovery's ``max_time`` is not spent (else the
-    step is recorded as left out, :mod:`.._core.budget`)."""
-    if expired():
-        passed(step)
-        return False
-    return True
 
 
 def _noise_from_fit(trials, best):

@@ -212,7 +212,7 @@ def selected_and_scored(trial: Trial):
     error, held-out errors per segment) after stepwise selection and the held-out
     score, or why there is no score
     ("does not join", "blew up", "not judged": the discovery's ``max_time`` was spent
-    before it started)."""
+    before it started or while its folds were refitted)."""
     if expired():
         return "not judged"
     # the pool includes the system's own terms, so a term swapped out can come back

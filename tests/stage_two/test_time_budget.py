@@ -90,6 +90,8 @@ def test_progress_lines_only_when_verbose(capsys):
         budget.progress("first fit 1 of 3")
         assert not budget.expired()
     assert "] first fit 1 of 3" in capsys.readouterr().err
+    with budget.budget(1e-9) as left:
+        assert budget.spent("a step") and left.passed == ["a step"]
     budget.progress("outside")  # no budget: nothing printed, nothing expires
     budget.passed("anything")
     assert not budget.expired() and capsys.readouterr().err == ""

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..._core.budget import expired, passed
+from ..._core.budget import spent
 from .normal_equations import solve
 from .shooting import BlowUp
 
@@ -67,8 +67,7 @@ def levenberg_marquardt(problem, system, values, starts, weights, rho, max_itera
     eq = problem.equations(system.with_free(values), starts, weights, rho)
     mu, converged, iterations, accepted = 1e-3, False, 0, True
     while iterations < max_iterations:
-        if expired():  # max_time is spent: the fit so far
-            passed("fits stopped before converging")
+        if spent("fits stopped before converging"):  # max_time: the fit so far
             break
         if accepted:  # a new point: its matrix serves every damped solve there
             a = eq.matrix()

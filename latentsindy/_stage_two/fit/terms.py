@@ -27,7 +27,7 @@ import scipy.sparse as sps
 import scipy.sparse.linalg as spla
 from scipy.linalg import cho_solve_banded
 
-from ..._core.budget import expired, passed
+from ..._core.budget import spent
 from ..._core.timing import timed
 from ..context import MARGIN
 from .field import ParametricSystem
@@ -62,8 +62,7 @@ def select_terms(problem: Problem, fit: Fit, candidates, max_steps=MAX_STEPS):
     price = _price(problem, fit, candidates)
     history, tabu = [], set()
     for _ in range(max_steps):
-        if expired():  # max_time is spent: the terms selected so far
-            passed("term selection")
+        if spent("term selection"):  # max_time: the terms selected so far
             break
         s2 = max(fit.residual_variance, 1.0)
         model = _Quadratic(problem, fit, candidates & ~fit.system.free)
