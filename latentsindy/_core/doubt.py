@@ -27,8 +27,9 @@ KINDS = {
     "unresolved": "a hidden state moves faster than the sampling resolves",
     "free run": "the system integrated over a whole recording blows up or runs out of budget",
     "no law": "no term of the library was kept: no law was found",
-    "without stage one": "stage one saw no law (too few samples per cycle); only laws with "
-                         "one hidden carrier were judged",
+    "without stage one": "found without stage one (too few samples per cycle, or short "
+                         "recordings), and the law keeps every closure term or the "
+                         "held-out check has little power on these data",
     "time budget": "max_time was spent before the judgement ended: some hypotheses or "
                    "steps were not judged",
     # stage one: the coefficients' structure

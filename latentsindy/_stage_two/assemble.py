@@ -11,7 +11,7 @@ import sympy as sp
 from .._core.doubt import Doubt
 from .._core.timing import timed
 from .doubts.beyond import beyond_terms
-from .doubts.checks import doubts, segment_constant_doubts
+from .doubts.checks import doubts, reproduces, segment_constant_doubts, weak_check_doubts
 from .doubts.folded import folded_doubts, folded_score
 from .doubts.runs import free_run_doubt
 from .doubts.states import (
@@ -29,6 +29,7 @@ from .doubts.terms import (
     weak_doubts,
     weakly_supported_terms,
 )
+from .fit.expected_score import expected_score
 from .judge import build
 from .propose.nested import monomial_name
 from .result import HiddenDiscovery
@@ -127,8 +128,11 @@ def _describe_origin(p):
 
 
 @timed("checks and result")
-def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
-    """The result of a refined discovery: ``ordered`` verdicts, best first."""
+def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
+    """The result of a refined discovery: ``ordered`` verdicts, best first.
+    ``unaided``: why stage one did not help (the law was found without it), or None;
+    then the held-out check's reference is always simulated, and a reference above
+    ``checks.POWER`` is a doubt (the check could not have seen a wrong law)."""
     best = ordered[0]
     system, fit, problem = best.system, best.fit, best.problem
     observed = list(ctx.observed_names)
@@ -155,7 +159,14 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
     unsure = tuple(alt(v) for v in uncertain)
     # an unscored winner (every candidate blew up or does not join) has no score
     score, score_se = (best.cv, best.cv_se) if best.scored else (math.inf, math.nan)
-    notes = _static_notes(terms, names)
+    notes = list(_static_notes(terms, names))
+    # a score above ~1 is measured against what this system would score if it were
+    # right (short segments: their starts' uncertainty is in the prediction too)
+    expected = (expected_score(problem, fit) if best.scored and np.isfinite(score)
+                and (unaided or not reproduces(score, score_se)) else None)
+    if expected is not None:
+        notes.append(f"a right system's held-out score at this sampling: {expected:.3g} "
+                     "(simulated from the fitted system, its noise level and times)")
     extended, beyond = beyond_terms(best, ctx.feature_exprs, ctx.free_rows)
     folded = (folded_score(best, ctx.closure_library)
               if best.proposal.nested else None)
@@ -165,7 +176,8 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names):
         alternatives, unsure, refinement, tuple(notes), list(ctx.times), list(ctx.observed),
         hidden, [np.asarray(h) for h in best.proposal.hidden], trajectories[0][0].copy(),
         doubts(score, score_se, refinement, terms, names,
-               None if best.scored else best.history[0])
+               None if best.scored else best.history[0], expected)
+        + weak_check_doubts(expected, unaided)
         + segment_constant_doubts(terms, names, system.n_observed, trajectories, stds)
         + first_integral_doubt(best, names)
         + exchange_doubts(exchangeable_terms(best), system, rename, names_map)

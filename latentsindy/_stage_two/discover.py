@@ -288,7 +288,8 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
             ordered, uncertain = judge_all(proposals, ctx, RefineOptions(device=device), max_hidden,
                                            NESTED)
             if ordered:
-                result = from_verdicts(ordered, uncertain, ctx, first, hidden_names)
+                result = from_verdicts(ordered, uncertain, ctx, first, hidden_names,
+                                       blind_path.note(panel) if blind else None)
     stds = {ij: first.std[:, ij[0], ij[1]] for ij in index}
     if refine and not ordered:  # an answer, unchecked and saying so, not an exception
         result = from_proposals(proposals, ctx, first, hidden_names, stds)
@@ -309,9 +310,13 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
             "no law", "no law was found: no term of the library was kept in any equation "
             "(the derivatives are too noisy, or the samples too few per oscillation, to "
             "show one); the data are described as constant"),))
-    if blind:
-        result = dataclasses.replace(result, doubts=result.doubts + (blind_path.doubt(panel),))
     notes = use.dropped
+    if blind:
+        notes += (blind_path.note(panel),)
+        full = blind_path.saturated(ordered[0]) if refine and ordered else []
+        if full:
+            result = dataclasses.replace(result, doubts=result.doubts + (blind_path.doubt(
+                panel, [result.hidden_names[a] for a in full]),))
     if hidden_names is not None and len(hidden_names) != len(result.hidden_names):
         notes += (f"{len(hidden_names)} hidden_names given for {len(result.hidden_names)} "
                   f"hidden state(s) found; names used: {list(result.hidden_names)}",)

@@ -1,0 +1,106 @@
+"""The held-out score's reference: what a right system would score at this sampling,
+and the checks that read the score against it."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from test_refine import TRUTH_ROW, lv_problem, lv_system
+
+from latentsindy import systems
+from latentsindy._stage_two import without_stage_one as blind_path
+from latentsindy._stage_two.doubts.checks import FAR, REPRODUCTION_SLACK, reproduces
+from latentsindy._stage_two.fit.expected_score import expected_score
+from latentsindy._stage_two.fit.refine import Problem, cross_validate
+
+A, B, G, D = 1.0, 0.1, 1.5, 0.075
+
+
+def _panel(n_recordings, noise=0.01, seed=0):
+    """Prey of ``n_recordings`` subjects, 11 irregular samples each over about a cycle,
+    with the true hidden state as the guess."""
+    data = systems.lotka_volterra(A, B, G, D, n_times=4000, t_end=60.0)
+    rng = np.random.default_rng(seed)
+    x = data.x[:, :1] + noise * data.x[:, 0].std() * rng.standard_normal((4000, 1))
+    h = A - B * data.x[:, 1]
+    starts = rng.choice(4000 - 400, n_recordings, replace=False)
+    rows = [s + np.sort(rng.choice(400, 11, replace=False)) for s in starts]
+    return ([data.t[r] for r in rows], [x[r] for r in rows],
+            [np.column_stack([data.x[r, 0], h[r]]) for r in rows])
+
+
+def test_a_right_system_on_dense_data_is_expected_to_score_about_one():
+    """1,500 samples in one recording: every held-out segment's start is pinned by its
+    neighbours, so the reference is the noise alone (measured 0.98)."""
+    data, guesses = lv_problem(0.01)
+    problem = Problem(lv_system(TRUTH_ROW), [data.t], [data.x[:, :1]], guesses)
+    assert expected_score(problem, problem.fit()) == pytest.approx(1.0, abs=0.25)
+
+
+def test_short_recordings_raise_the_reference_and_a_right_law_meets_it():
+    """A panel of 12 recordings of 11 samples: the held-out segments' starts rest on a
+    few noisy samples, so a right law scores above 1; the reference says by how much,
+    and the right law's real score is read against it (a missing term still fails)."""
+    t, x, guesses = _panel(12)
+    right = Problem(lv_system(TRUTH_ROW), t, x, guesses)
+    fit = right.fit()
+    reference = expected_score(right, fit)
+    score, se, _ = cross_validate(right, fit)
+    assert reference > 1.0
+    assert reproduces(score, se, reference)
+    wrong_row = TRUTH_ROW.copy()
+    wrong_row[0] = 0.0  # without x h the law cannot follow the cycle
+    wrong = Problem(lv_system(wrong_row), t, x, guesses)
+    wrong_fit = wrong.fit()
+    wrong_score, wrong_se, _ = cross_validate(wrong, wrong_fit)
+    assert not reproduces(wrong_score, wrong_se, expected_score(wrong, wrong_fit))
+
+
+def test_the_reference_is_the_same_for_the_same_data():
+    t, x, guesses = _panel(6)
+    problem = Problem(lv_system(TRUTH_ROW), t, x, guesses)
+    fit = problem.fit()
+    assert expected_score(problem, fit) == expected_score(problem, fit)
+
+
+@pytest.mark.parametrize(("score", "se", "expected", "ok"), [
+    (1.05, 0.1, 1.0, True),            # the noise: reproduced
+    (2.0, 0.2, 1.0, False),            # significantly above
+    (14.85, 5.3, 20.0, True),          # short recordings: a right law's reference is 20
+    (673.0, 480.0, 4.14, False),       # too wide to be significant, yet far above
+    (3.0, 2.0, 1.0, True),             # inconclusive and not far: no evidence against
+])
+def test_a_score_is_read_against_its_reference(score, se, expected, ok):
+    assert reproduces(score, se, expected) is ok
+
+
+def test_far_is_measured_from_the_slack_limit():
+    """However wide the standard error, a score more than FAR times the limit (the
+    reference with its slack) is no reproduction; just under it, it is."""
+    limit = 1 + REPRODUCTION_SLACK
+    assert not reproduces(1.01 * FAR * limit, 1e9, 1.0)
+    assert reproduces(0.99 * FAR * limit, 1e9, 1.0)
+    assert not reproduces(1.01 * FAR * 5 * limit, 1e9, 5.0)
+    assert reproduces(0.99 * FAR * 5 * limit, 1e9, 5.0)
+
+
+def _verdict(hidden_row, n_closure):
+    coef = np.zeros((2, 6))
+    coef[0, 0] = 1.0
+    coef[1] = hidden_row
+    free = np.zeros((2, 6), dtype=bool)
+    free[1] = np.asarray(hidden_row) != 0
+    system = SimpleNamespace(coef=coef, free=free, n_observed=1, state_names=("x", "h0"))
+    return SimpleNamespace(system=system, proposal=SimpleNamespace(
+        closure=SimpleNamespace(coef=np.zeros((1, n_closure)))))
+
+
+def test_a_law_found_without_stage_one_is_doubted_only_when_it_keeps_every_term():
+    """Prey-only LV's exact law keeps 4 of the 6 terms of degree 2; a wrong carrier's
+    approximation kept all 6 (at 8 samples per cycle and in a panel of 20 x 11)."""
+    assert blind_path.saturated(_verdict([0.1, 1.5, -1.5, -0.07, 0.0, 0.0], 6)) == []
+    assert blind_path.saturated(_verdict([0.1, 1.5, -1.5, -0.07, 2e-5, -36.0], 6)) == [0]
+    doubt = blind_path.doubt(True, ["h0"])
+    assert doubt.kind == "without stage one"
+    assert "dh0/dt keeps every term of the closure library" in doubt
+    assert "16 samples between gaps" in doubt
