@@ -28,8 +28,9 @@ KINDS = {
     "free run": "the system integrated over a whole recording blows up or runs out of budget",
     "no law": "no term of the library was kept: no law was found",
     "without stage one": "found without stage one (too few samples per cycle, or short "
-                         "recordings), and the law keeps every closure term or the "
-                         "held-out check has little power on these data",
+                         "recordings), the law keeps every closure term: no sparse law",
+    "weak check": "the held-out check has little power on these data (a right system "
+                  "would score well above the noise there)",
     "time budget": "max_time was spent before the judgement ended: some hypotheses or "
                    "steps were not judged",
     # stage one: the coefficients' structure

@@ -89,7 +89,8 @@ def _power_law(level, d4, d6):
     positive = (mid > 0) & (spread4 > 0)
     if (pooled <= 0 or np.any(spread6 <= 0) or positive.sum() < 3
             or np.any(np.abs(spread4 / spread6 - 1) > AGREE)
-            or stats.spearmanr(mid, spread4).statistic < RISES):
+            or np.ptp(spread4) == 0 or np.ptp(mid) == 0  # no rank correlation to read
+            or not stats.spearmanr(mid, spread4).statistic >= RISES):
         return None
     p, log_a = np.polyfit(np.log(mid[positive]), np.log(spread4[positive]), 1)
     floor = mid[positive][0] / 10

@@ -131,8 +131,8 @@ def _describe_origin(p):
 def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
     """The result of a refined discovery: ``ordered`` verdicts, best first.
     ``unaided``: why stage one did not help (the law was found without it), or None;
-    then the held-out check's reference is always simulated, and a reference above
-    ``checks.POWER`` is a doubt (the check could not have seen a wrong law)."""
+    then the held-out check's reference is always simulated. A reference above
+    ``checks.POWER`` is a doubt (``weak check``)."""
     best = ordered[0]
     system, fit, problem = best.system, best.fit, best.problem
     observed = list(ctx.observed_names)
@@ -177,7 +177,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
         hidden, [np.asarray(h) for h in best.proposal.hidden], trajectories[0][0].copy(),
         doubts(score, score_se, refinement, terms, names,
                None if best.scored else best.history[0], expected)
-        + weak_check_doubts(expected, unaided)
+        + weak_check_doubts(expected, unaided, best.scored and np.isfinite(score))
         + segment_constant_doubts(terms, names, system.n_observed, trajectories, stds)
         + first_integral_doubt(best, names)
         + exchange_doubts(exchangeable_terms(best), system, rename, names_map)

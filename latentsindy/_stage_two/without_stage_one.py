@@ -10,16 +10,18 @@ as measured (no derivative), and the judge refines, selects terms and scores the
 any proposal (all recordings share the law, each with its own hidden start). The
 result's notes say so; it carries the ``without stage one`` doubt when the law it found
 keeps every closure term (:func:`saturated`: no sparse law, the sign of a wrong
-carrier's approximation) or when the held-out check has little power on such data
-(a right system's simulated score above 3 noise variances:
-:func:`.doubts.checks.weak_check_doubts`).
+carrier's approximation), and the ``weak check`` doubt when the held-out check has
+little power on such data (a right system's simulated score above 3 noise variances,
+or not measurable: :func:`.doubts.checks.weak_check_doubts`).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import sympy as sp
 
 from .._core.doubt import Doubt
+from .._core.library import feature_expressions
 from .._core.threads import single_thread
 from .._stage_one.coefficients import CoefficientSeries
 from .fit.refine import RefineOptions
@@ -70,12 +72,23 @@ def saturated(verdict) -> list[int]:
     a panel of 20 x 11 samples, ``dx/dt = h x^2`` with all six terms of degree 2
     scored at or below the exact law). The exact laws of every benchmark family
     leave terms out."""
-    system = verdict.system
-    n_closure = verdict.proposal.closure.coef.shape[-1]
-    rows = range(system.n_observed, len(system.state_names))
-    return [r - system.n_observed for r in rows
-            if n_closure and system.free[r].any()
-            and np.count_nonzero(system.coef[r]) >= n_closure]
+    system, p = verdict.system, verdict.proposal
+    if not len(p.closure.coef):
+        return []
+    names = list(system.state_names)
+    obs, hidden = names[:system.n_observed], names[system.n_observed:]
+    states = (["g0"] if p.order == 2 else []) + hidden[:p.structure.n_hidden] + obs
+    if getattr(p, "nested", None) or len(p.closure.feature_names) != len(states):
+        return []  # a nested state's law is closed in other states: not this check's
+    features = [sp.expand(f) for f in system.features]
+    exprs = [sp.expand(e) for e in feature_expressions(
+        p.closure.library, list(p.closure.feature_names), states)]
+    cols = [features.index(e) for e in exprs if e in features]
+    if len(cols) < len(exprs):  # restated in other features: not this closure's law
+        return []
+    closed = [len(names) - 1] if p.order == 2 else range(system.n_observed, len(names))
+    return [r - system.n_observed for r in closed
+            if system.free[r].any() and np.all(system.coef[r, cols] != 0)]
 
 
 def doubt(panel: bool, hidden: list[str]) -> Doubt:

@@ -4,13 +4,16 @@ and the checks that read the score against it."""
 from types import SimpleNamespace
 
 import numpy as np
+import pysindy as ps
 import pytest
+import sympy as sp
+import torch
 from test_refine import TRUTH_ROW, lv_problem, lv_system
 
 from latentsindy import systems
 from latentsindy._stage_two import without_stage_one as blind_path
 from latentsindy._stage_two.doubts.checks import FAR, REPRODUCTION_SLACK, reproduces
-from latentsindy._stage_two.fit.expected_score import expected_score
+from latentsindy._stage_two.fit.expected_score import _noise, _with_data, expected_score
 from latentsindy._stage_two.fit.refine import Problem, cross_validate
 
 A, B, G, D = 1.0, 0.1, 1.5, 0.075
@@ -84,23 +87,62 @@ def test_far_is_measured_from_the_slack_limit():
     assert reproduces(0.99 * FAR * 5 * limit, 1e9, 5.0)
 
 
-def _verdict(hidden_row, n_closure):
+def _verdict(closure_row):
+    """A judged prey-only LV law: x' = x h0, h0' = closure_row . (h0 x, 1, h0, x, h0^2,
+    x^2), its closure library of degree 2 fitted on (h0, x)."""
+    h0, x = sp.symbols("h0 x", real=True)
+    library = ps.PolynomialLibrary(degree=2).fit(np.ones((3, 2)))
+    features = (h0 * x, sp.Integer(1), h0, x, h0**2, x**2)
     coef = np.zeros((2, 6))
     coef[0, 0] = 1.0
-    coef[1] = hidden_row
+    coef[1] = closure_row
     free = np.zeros((2, 6), dtype=bool)
-    free[1] = np.asarray(hidden_row) != 0
-    system = SimpleNamespace(coef=coef, free=free, n_observed=1, state_names=("x", "h0"))
+    free[1] = np.asarray(closure_row) != 0
+    system = SimpleNamespace(coef=coef, free=free, n_observed=1, state_names=("x", "h0"),
+                             features=features)
+    closure = SimpleNamespace(coef=np.zeros((1, 6)), library=library,
+                              feature_names=("h0", "x"))
     return SimpleNamespace(system=system, proposal=SimpleNamespace(
-        closure=SimpleNamespace(coef=np.zeros((1, n_closure)))))
+        closure=closure, order=1, structure=SimpleNamespace(n_hidden=1)))
 
 
 def test_a_law_found_without_stage_one_is_doubted_only_when_it_keeps_every_term():
     """Prey-only LV's exact law keeps 4 of the 6 terms of degree 2; a wrong carrier's
     approximation kept all 6 (at 8 samples per cycle and in a panel of 20 x 11)."""
-    assert blind_path.saturated(_verdict([0.1, 1.5, -1.5, -0.07, 0.0, 0.0], 6)) == []
-    assert blind_path.saturated(_verdict([0.1, 1.5, -1.5, -0.07, 2e-5, -36.0], 6)) == [0]
+    assert blind_path.saturated(_verdict([0.075, 1.5, -1.5, -0.075, 0.0, 0.0])) == []
+    assert blind_path.saturated(_verdict([0.02, 0.03, -1.3, -8e-4, -58.0, 5e-6])) == [0]
     doubt = blind_path.doubt(True, ["h0"])
     assert doubt.kind == "without stage one"
     assert "dh0/dt keeps every term of the closure library" in doubt
     assert "16 samples between gaps" in doubt
+
+
+def test_simulated_noise_has_the_estimated_level_and_correlation():
+    """White where no correlation was read; AR(1) with phi per median step, decaying
+    as phi^(gap / step) across a longer gap."""
+    t = np.arange(20000) * 0.1
+    rng = np.random.default_rng(0)
+    white = SimpleNamespace(n_obs=1, sigma=np.array([2.0]), phi=np.array([0.0]), times=[t])
+    e = _noise(rng, t, white)[:, 0]
+    assert e.std() == pytest.approx(2.0, rel=0.03)
+    assert abs(np.corrcoef(e[:-1], e[1:])[0, 1]) < 0.03
+    red = SimpleNamespace(n_obs=1, sigma=np.array([2.0]), phi=np.array([0.9]), times=[t])
+    e = _noise(rng, t, red)[:, 0]
+    assert e.std() == pytest.approx(2.0, rel=0.1)
+    assert np.corrcoef(e[:-1], e[1:])[0, 1] == pytest.approx(0.9, abs=0.02)
+    assert np.corrcoef(e[:-2:2], e[2::2])[0, 1] == pytest.approx(0.81, abs=0.03)
+
+
+def test_the_reference_leaves_the_problem_it_was_simulated_from_unchanged():
+    t, x, guesses = _panel(6)
+    problem = Problem(lv_system(TRUTH_ROW), t, x, guesses)
+    fit = problem.fit()
+    before = [g.observed.clone() for g in problem.groups]
+    expected_score(problem, fit)
+    assert all(torch.equal(a, g.observed) for a, g in zip(before, problem.groups,
+                                                         strict=True))
+    assert all(np.array_equal(a, b) for a, b in zip(problem.observed, x, strict=True))
+    same = _with_data(problem, problem.observed)
+    assert all(torch.equal(a.observed, b.observed) for a, b in zip(same.groups,
+                                                                   problem.groups,
+                                                                   strict=True))

@@ -52,12 +52,14 @@ def _panel(n_recordings, seed=0):
 def test_a_panel_of_short_recordings_is_pooled_not_refused():
     """20 recordings of 11 samples: none is long enough for stage one, together they
     hold 220; the law is searched by stage two alone over all of them (one law, each
-    recording its own hidden start) and the result says so."""
+    recording its own hidden start) and the result says so; the held-out check has
+    little power on 11-sample recordings (a right system's simulated score above 3),
+    and the result is flagged for it."""
     xs, ts = _panel(20)
     result = discover_hidden(xs, ps.PolynomialLibrary(degree=3), t=ts, feature_names=["x"],
                              verbose=False)
     assert result.data_use.segments == 20 and result.data_use.samples == 220
-    assert "without stage one" in [dd.kind for dd in result.doubts]
+    assert "weak check" in [dd.kind for dd in result.doubts]
     assert not result.confident
 
 

@@ -23,9 +23,8 @@ REPRODUCTION_SLACK = 0.15
 FAR = 3.0
 # Reference (a right system's simulated held-out score) above which the check has
 # little power: a law that misses the data by a few noise variances per sample scores
-# within the reference's own spread. Where stage one did not help, the held-out check
-# is the only one that could see a wrong carrier's approximation (epidemic panels of
-# 20 x 11 samples: a wrong law at 11.3 +- 3.7 against a reference of 7.5).
+# within the reference's own spread (epidemic panels of 20 x 11 samples: a wrong law at
+# 11.3 +- 3.7 against a reference of 7.5).
 POWER = 3.0
 SIGNIFICANCE = 2.0  # a kept coefficient should be this many standard errors from zero
 
@@ -80,20 +79,24 @@ def doubts(score, score_se, refinement, terms, hidden, unscored=None, expected=N
     return tuple(found)
 
 
-def weak_check_doubts(expected, unaided):
-    """The ``without stage one`` doubt when the law was found without stage one
-    (``unaided`` says why) and the held-out check has little power here, or its power
-    could not be measured (``expected`` None: the fitted system could not be simulated
-    and refitted)."""
-    if not unaided or (expected is not None and expected <= POWER):
+def weak_check_doubts(expected, unaided=None, scored=True):
+    """The ``weak check`` doubt when the held-out check has little power on these data
+    (a right system's simulated score ``expected`` above ``POWER``), or, for a law found
+    without stage one (``unaided`` says why: then the check is the only one that could
+    see a wrong carrier's approximation), when its power could not be measured (a
+    scored system that could not be simulated and refitted)."""
+    if expected is None and not (unaided and scored):
+        return ()
+    if expected is not None and expected <= POWER:
         return ()
     power = ("its power could not be measured (the fitted system could not be simulated "
              "and refitted)" if expected is None else
              f"little power (a right system would score ~{expected:.3g} noise variances "
              "here: its held-out stretches start from a few noisy samples)")
-    return (Doubt("without stage one", f"{unaided}; on these data the held-out check has "
-                  f"{power}, so a wrong carrier's law could pass it. Confirm it with denser "
-                  "samples or more recordings."),)
+    why = f"{unaided}; on" if unaided else "On"
+    return (Doubt("weak check", f"{why} these data the held-out check has {power}, so a "
+                  "law that misses the data by a few noise variances could pass it. Confirm "
+                  "it with denser samples or more recordings."),)
 
 
 def segment_constant_doubts(terms, names, n_observed, trajectories, stds):

@@ -25,6 +25,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
+from ..._core.budget import expired
 from ..._core.local_fits import is_uniform
 from ..._core.noise_shape import level_profile
 from .refine import Fit, Problem, cross_validate
@@ -32,12 +33,16 @@ from .shooting import BlowUp
 
 REPLICATES = 4  # simulated data sets; the reference is their mean score
 SEED = 20261129  # fixed: the same data give the same reference
+MIN_SCORED = 2  # replicates refitted and scored, at least
 
 
 def expected_score(problem: Problem, fit: Fit, replicates: int = REPLICATES) -> float | None:
     """Mean held-out score of ``fit``'s system on data simulated from it (the same
     times, segments, folds and noise level); None when it cannot be simulated (the
-    fitted trajectories blow up) or no replicate could be refitted and scored."""
+    fitted trajectories blow up), when fewer than ``MIN_SCORED`` replicates could be
+    refitted and scored, or when ``max_time`` is spent."""
+    if expired():  # every fit would stop before its first step: no reference
+        return None
     model = problem.trajectories(fit)
     if not all(np.all(np.isfinite(m[:, :problem.n_obs])) for m in model):
         return None
@@ -53,12 +58,13 @@ def expected_score(problem: Problem, fit: Fit, replicates: int = REPLICATES) -> 
         try:
             refit = synthetic.fit(fit.system, fit.starts.copy(), resolution=0.0,
                                   penalties=(fit.rho,))
-        except BlowUp:
+            score, _, _ = cross_validate(synthetic, refit)
+        except (BlowUp, np.linalg.LinAlgError, ValueError):
             continue
-        score, _, _ = cross_validate(synthetic, refit)
         if np.isfinite(score):
             scores.append(score)
-    return float(np.mean(scores)) if scores else None
+    # one surviving replicate is no reference (those that blew up may be the hard ones)
+    return float(np.mean(scores)) if len(scores) >= MIN_SCORED else None
 
 
 def _noise(rng, t, problem: Problem) -> np.ndarray:
