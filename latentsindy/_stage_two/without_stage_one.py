@@ -78,7 +78,8 @@ def saturated(verdict) -> list[int]:
     names = list(system.state_names)
     obs, hidden = names[:system.n_observed], names[system.n_observed:]
     states = (["g0"] if p.order == 2 else []) + hidden[:p.structure.n_hidden] + obs
-    if getattr(p, "nested", None) or len(p.closure.feature_names) != len(states):
+    n_in = getattr(p.closure.library, "n_features_in_", len(states))
+    if getattr(p, "nested", None) or n_in != len(states):
         return []  # a nested state's law is closed in other states: not this check's
     features = [sp.expand(f) for f in system.features]
     exprs = [sp.expand(e) for e in feature_expressions(

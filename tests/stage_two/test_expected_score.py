@@ -100,8 +100,9 @@ def _verdict(closure_row):
     free[1] = np.asarray(closure_row) != 0
     system = SimpleNamespace(coef=coef, free=free, n_observed=1, state_names=("x", "h0"),
                              features=features)
+    # as the closure fit keeps them: the library's output names, not the states'
     closure = SimpleNamespace(coef=np.zeros((1, 6)), library=library,
-                              feature_names=("h0", "x"))
+                              feature_names=tuple(library.get_feature_names(["h0", "x"])))
     return SimpleNamespace(system=system, proposal=SimpleNamespace(
         closure=closure, order=1, structure=SimpleNamespace(n_hidden=1)))
 
