@@ -65,6 +65,13 @@ class Verdict:
         return self.system.n_free + (len(self.system.state_names) - self.system.n_observed)
 
 
+def closure_state_names(p: Proposal, observed, hidden) -> list[str]:
+    """The states the closure library of ``p`` was fitted on, in its order: the rate
+    state (second order), the hidden states, the observed ones (``hidden`` as the
+    closed system names them, the rate state last)."""
+    return (["g0"] if p.order == 2 else []) + list(hidden[:p.structure.n_hidden]) + list(observed)
+
+
 def build(p: Proposal, ctx: Context):
     """The closed system of a proposal, the terms stepwise selection may add, and the
     initial guesses of the states."""
@@ -83,7 +90,7 @@ def build(p: Proposal, ctx: Context):
         return index[expr]
 
     obs_cols = [col(e) for e in ctx.feature_exprs]
-    closure_states = (["g0"] if p.order == 2 else []) + hidden[:st.n_hidden] + obs
+    closure_states = closure_state_names(p, obs, hidden)
     closure_cols = [col(e) for e in feature_expressions(
         p.closure.library, list(p.closure.feature_names), closure_states)] \
         if len(p.closure.coef) else []  # no hidden state: nothing to close

@@ -25,7 +25,7 @@ from .._core.library import feature_expressions
 from .._core.threads import single_thread
 from .._stage_one.coefficients import CoefficientSeries
 from .fit.refine import RefineOptions
-from .verdict import first_fit
+from .verdict import closure_state_names, first_fit
 
 # Misfit (noise variances per sample, integrated against the data) of the law without
 # hidden states (stage one's terms as constants; none: the states held constant) above
@@ -76,8 +76,7 @@ def saturated(verdict) -> list[int]:
     if not len(p.closure.coef):
         return []
     names = list(system.state_names)
-    obs, hidden = names[:system.n_observed], names[system.n_observed:]
-    states = (["g0"] if p.order == 2 else []) + hidden[:p.structure.n_hidden] + obs
+    states = closure_state_names(p, names[:system.n_observed], names[system.n_observed:])
     n_in = getattr(p.closure.library, "n_features_in_", len(states))
     if getattr(p, "nested", None) or n_in != len(states):
         return []  # a nested state's law is closed in other states: not this check's
