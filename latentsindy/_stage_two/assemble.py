@@ -9,6 +9,7 @@ import numpy as np
 import sympy as sp
 
 from .._core.doubt import Doubt
+from .._core.parallel import map_on
 from .._core.timing import timed
 from .doubts.beyond import beyond_terms
 from .doubts.checks import doubts, reproduces, segment_constant_doubts, weak_check_doubts
@@ -29,7 +30,7 @@ from .doubts.terms import (
     weak_doubts,
     weakly_supported_terms,
 )
-from .fit.expected_score import expected_score
+from .fit.expected_score import REPLICATES, expected_score
 from .judge import build
 from .propose.nested import monomial_name
 from .result import HiddenDiscovery
@@ -162,14 +163,13 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
     notes = list(_static_notes(terms, names))
     # a score above ~1 is measured against what this system would score if it were
     # right (short segments: their starts' uncertainty is in the prediction too)
-    expected = (expected_score(problem, fit) if best.scored and np.isfinite(score)
-                and (unaided or not reproduces(score, score_se)) else None)
+    simulate = (best.scored and np.isfinite(score)
+                and bool(unaided or not reproduces(score, score_se)))
+    expected, (extended, beyond), folded, exchangeable, weak, missing = _refitting_checks(
+        best, ctx, simulate)
     if expected is not None:
         notes.append(f"a right system's held-out score at this sampling: {expected:.3g} "
                      "(simulated from the fitted system, its noise level and times)")
-    extended, beyond = beyond_terms(best, ctx.feature_exprs, ctx.free_rows)
-    folded = (folded_score(best, ctx.closure_library)
-              if best.proposal.nested else None)
     result = HiddenDiscovery(
         ctx.times[0], ctx.observed[0], hidden[0], stds[0][:, system.n_observed:],
         tuple(observed), tuple(names), states, terms, coefs, score, score_se,
@@ -180,9 +180,9 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
         + weak_check_doubts(expected, unaided, best.scored and np.isfinite(score))
         + segment_constant_doubts(terms, names, system.n_observed, trajectories, stds)
         + first_integral_doubt(best, names)
-        + exchange_doubts(exchangeable_terms(best), system, rename, names_map)
-        + weak_doubts(weakly_supported_terms(best), system, rename, names_map)
-        + missing_doubts(nearly_needed_terms(best), system, rename, names_map)
+        + exchange_doubts(exchangeable, system, rename, names_map)
+        + weak_doubts(weak, system, rename, names_map)
+        + missing_doubts(missing, system, rename, names_map)
         + beyond_doubts(beyond, extended, rename, names_map)
         + folded_doubts(folded, score, score_se, best.size, names)
         + observed_function_doubts(system, names_map)
@@ -190,6 +190,29 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
         + unresolved_doubts(system, trajectories, ctx.times, names_map))
     free = free_run_doubt(result, trajectories) if best.scored else ()
     return dataclasses.replace(result, doubts=result.doubts + free) if free else result
+
+
+def _refitting_checks(best, ctx, simulate):
+    """The checks that refit the chosen system, side by side: the simulated reference
+    (when ``simulate``), terms beyond the search, the folded system (nested only),
+    exchangeable, weakly supported and nearly needed terms. Each reads the verdict and
+    fits copies, none depends on another, so on a CPU a second core takes some of them
+    (:func:`.._core.parallel.map_on`; the same values as one after the other). On a
+    slow system they are most of a call's time (Hindmarsh-Rose: five fits of 20-30 s
+    each)."""
+    problem, fit = best.problem, best.fit
+    checks = [
+        (lambda: expected_score(problem, fit) if simulate else None,
+         2.0 * REPLICATES if simulate else 0.0),
+        (lambda: beyond_terms(best, ctx.feature_exprs, ctx.free_rows), 1.5),
+        (lambda: (folded_score(best, ctx.closure_library)
+                  if best.proposal.nested else None), 1.0 if best.proposal.nested else 0.0),
+        (lambda: exchangeable_terms(best), 1.0),
+        (lambda: weakly_supported_terms(best), 1.0),
+        (lambda: nearly_needed_terms(best), 1.0),
+    ]
+    return map_on(problem.options.device, lambda check: check[0](), checks,
+                  cost=[c for _, c in checks])
 
 
 def _static_notes(terms, names):

@@ -124,3 +124,45 @@ def test_first_fits_side_by_side_are_the_one_by_one_fits(monkeypatch, tmp_path):
     # the helper started the hopeless one long before the good fit was known: with no
     # bound it recovered (1.5), so the parent fitted it again under the loop's bound
     assert (str(os.getpid()), "hopeless, would recover", "again") in made
+
+
+def test_term_selection_refits_the_rest_side_by_side_only_after_the_first_fails(
+        monkeypatch, tmp_path):
+    """``terms._first_better`` makes its first exact refit alone; once that fails, the
+    other attempts are made side by side, and the move chosen is the one-by-one loop's."""
+    from latentsindy._stage_two.fit import terms
+
+    log = tmp_path / "refits"
+
+    def scripted_refit(problem, fit, model, keep):
+        with open(log, "a") as fh:
+            fh.write(f"{os.getpid()}|{keep}\n")
+        time.sleep(0.2)
+        return SimpleNamespace(bic=keep)  # the criterion after the move: keep's value
+
+    monkeypatch.setattr(terms, "_refit", scripted_refit)
+    monkeypatch.setattr(terms, "_bic", lambda trial, s2, price: trial.bic)
+    problem = SimpleNamespace(options=SimpleNamespace(device="cpu"), joins=lambda t: True)
+
+    def choose(criteria, base=5.0):
+        log.unlink(missing_ok=True)
+        moves = [(10.0 - k, ("drop", (0, k)), c) for k, c in enumerate(criteria)]
+        tabu = set()
+        with single_thread():
+            found = terms._first_better(problem, None, None, moves, base, 1.0, 1.0, tabu)
+        made = [tuple(line.split("|")) for line in log.read_text().splitlines()]
+        return found, made, tabu
+
+    found, made, tabu = choose([3.0, 9.0, 1.0])  # the first refit succeeds: nothing more
+    assert found[1] == ("drop", (0, 0)) and len(made) == 1 and not tabu
+    found, made, tabu = choose([9.0, 4.0, 1.0])  # the second is the loop's choice
+    assert found[1] == ("drop", (0, 1)) and tabu == {("drop", (0, 0))}
+    assert len(made) == 3 and len({pid for pid, _ in made}) == 2  # the rest side by side
+    found, made, tabu = choose([9.0, 8.0, 7.0])  # none lowers the criterion
+    assert found is None and len(tabu) == 3
+    previous = parallel.enable(False)
+    try:  # without a second core the refits stop at the first that succeeds
+        found, made, _ = choose([9.0, 4.0, 1.0])
+    finally:
+        parallel.enable(previous)
+    assert found[1] == ("drop", (0, 1)) and len(made) == 2

@@ -25,9 +25,11 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sps
 import scipy.sparse.linalg as spla
+import torch
 from scipy.linalg import cho_solve_banded
 
 from ..._core.budget import spent
+from ..._core.parallel import available, forked_map
 from ..._core.timing import timed
 from ..context import MARGIN
 from .field import ParametricSystem
@@ -82,20 +84,37 @@ def select_terms(problem: Problem, fit: Fit, candidates, max_steps=MAX_STEPS):
 def _first_better(problem, fit, model, moves, base, s2, price, tabu):
     """The first of ``moves`` (best predicted first) whose exact refit lowers the
     criterion, as (fit, move, predicted gain); None after MAX_ATTEMPTS refits."""
-    attempts = 0
+    tried = []
     for gain, move, keep in moves:
-        if gain <= 1e-6 or attempts >= MAX_ATTEMPTS:
-            return None
-        if move in tabu:
-            continue
-        attempts += 1
-        trial = _refit(problem, fit, model, keep)
+        if gain <= 1e-6 or len(tried) >= MAX_ATTEMPTS:
+            break
+        if move not in tabu:
+            tried.append((gain, move, keep))
+    for (gain, move, _), trial in zip(tried, _refits(problem, fit, model, tried),
+                                      strict=True):
         # a move whose fit leaves a hidden state jumping between segments (shrunk until
         # its jumps pass the continuity scale) is no system's trajectory: refused
         if trial is not None and _bic(trial, s2, price) < base and problem.joins(trial):
             return trial, move, float(gain)
         tabu.add(move)  # the quadratic model promised more than the exact refit
     return None
+
+
+def _refits(problem, fit, model, tried):
+    """The exact refits of the moves ``tried``, in order, each made when it is asked
+    for. The first is made alone (it usually succeeds, and nothing more is asked); once
+    the second is asked for, the first failed, and where a second core is free
+    (:func:`.._core.parallel.available`) the rest are made side by side: the same
+    refits, so the same choice."""
+    if not tried:
+        return
+    yield _refit(problem, fit, model, tried[0][2])
+    rest = tried[1:]
+    if torch.device(problem.options.device).type == "cpu" and available(len(rest)):
+        yield from forked_map(lambda m: _refit(problem, fit, model, m[2]), rest)
+    else:
+        for m in rest:
+            yield _refit(problem, fit, model, m[2])
 
 
 def ambiguities(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS, same=None):
