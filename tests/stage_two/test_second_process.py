@@ -144,10 +144,12 @@ def test_term_selection_refits_the_rest_side_by_side_only_after_the_first_fails(
     monkeypatch.setattr(terms, "_bic", lambda trial, s2, price: trial.bic)
     problem = SimpleNamespace(options=SimpleNamespace(device="cpu"), joins=lambda t: True)
 
-    def choose(criteria, base=5.0):
+    def choose(criteria, base=5.0, gains=None, tabu=None):
         log.unlink(missing_ok=True)
-        moves = [(10.0 - k, ("drop", (0, k)), c) for k, c in enumerate(criteria)]
-        tabu = set()
+        gains = gains or [10.0 - k for k in range(len(criteria))]
+        moves = [(g, ("drop", (0, k)), c)
+                 for k, (g, c) in enumerate(zip(gains, criteria, strict=True))]
+        tabu = set() if tabu is None else tabu
         with single_thread():
             found = terms._first_better(problem, None, None, moves, base, 1.0, 1.0, tabu)
         made = [tuple(line.split("|")) for line in log.read_text().splitlines()]
@@ -160,6 +162,13 @@ def test_term_selection_refits_the_rest_side_by_side_only_after_the_first_fails(
     assert len(made) == 3 and len({pid for pid, _ in made}) == 2  # the rest side by side
     found, made, tabu = choose([9.0, 8.0, 7.0])  # none lowers the criterion
     assert found is None and len(tabu) == 3
+    # moves already refused are skipped, at most MAX_ATTEMPTS are refitted, and none
+    # whose predicted gain is nil
+    found, made, tabu = choose([9.0, 8.5, 8.0, 7.5, 1.0], tabu={("drop", (0, 1))})
+    assert found is None and sorted(float(k) for _, k in made) == [7.5, 8.0, 9.0]
+    assert len(tabu) == 4
+    found, made, _ = choose([9.0, 1.0], gains=[10.0, 1e-9])
+    assert found is None and [float(k) for _, k in made] == [9.0]
     previous = parallel.enable(False)
     try:  # without a second core the refits stop at the first that succeeds
         found, made, _ = choose([9.0, 4.0, 1.0])
