@@ -19,6 +19,7 @@ import pysindy as ps
 from scipy.signal import savgol_coeffs, savgol_filter
 
 from . import local_fits
+from .coloured import ar1_noise
 from .local_fits import ORDER as _POLYORDER
 from .timing import timed
 
@@ -83,6 +84,39 @@ def measurement_noise(x, t=None) -> np.ndarray:
     if _irregular(t):
         return noise_level(x, t)
     return _by_orders(np.asarray(x, float))
+
+
+def state_noise(x, t=None) -> tuple[np.ndarray, np.ndarray]:
+    """Per column: ``(sigma, phi)``, the measurement noise's standard deviation and its
+    correlation between neighbouring samples: AR(1) where the noise reads as coloured
+    (:func:`.coloured.ar1_noise`: its marginal level, which differences of neighbouring
+    samples read several times too low), otherwise :func:`noise_level` and ``phi = 0``.
+    Lists of recordings are pooled, as in :func:`noise_level`."""
+    white = noise_level(x, t)
+    coloured, phi = ar1_noise(x, t)
+    sigma = np.array([c if c is not None else w for c, w in zip(coloured, white,
+                                                                 strict=True)])
+    return sigma, np.asarray(phi, float)
+
+
+def marginal_noise(x, t=None) -> np.ndarray:
+    """:func:`measurement_noise`, with AR(1) noise's marginal level where the noise
+    reads as correlated in time (:func:`.coloured.ar1_noise`)."""
+    sigma = measurement_noise(x, t)
+    coloured, _ = ar1_noise(x, t)
+    return np.array([c if c is not None else s for c, s in zip(coloured, sigma,
+                                                               strict=True)])
+
+
+def ar1_gain(coeffs, phi: float) -> float:
+    """Variance gain of the linear filter ``coeffs`` on AR(1) noise of unit variance and
+    correlation ``phi`` between neighbouring samples (``sum c_i c_j phi^|i-j|``; white
+    noise: ``sum c_i^2``)."""
+    c = np.asarray(coeffs, float)
+    if phi <= 0:
+        return float(np.sum(c**2))
+    lags = np.abs(np.subtract.outer(np.arange(len(c)), np.arange(len(c))))
+    return float(c @ (phi**lags) @ c)
 
 
 def _by_orders(x):
@@ -202,7 +236,13 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
         The measurement noise's standard deviation per state, when known (or pooled
         over several recordings of one instrument: a short series estimates its own
         noise level poorly, and an underestimate shrinks the window several-fold).
-        Default: estimated from each series (:func:`noise_level`).
+        Default: estimated from each series (:func:`state_noise`: AR(1) noise's
+        marginal level where the noise reads as correlated in time, the white level
+        of :func:`noise_level` otherwise).
+    noise_correlation : float or array (n_states,), optional
+        The noise's correlation between neighbouring samples (AR(1)), used for the
+        derivative's noise gain. Default: estimated with the level when ``noise_std``
+        is not given, otherwise 0 (white).
 
     Examples
     --------
@@ -217,21 +257,32 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
     True
     """
 
-    def __init__(self, max_window: int | None = None, noise_std=None):
+    def __init__(self, max_window: int | None = None, noise_std=None,
+                 noise_correlation=None):
         self.max_window = max_window
         self.noise_std = noise_std
+        self.noise_correlation = noise_correlation
 
     def _sigmas(self, n_states):
         """The given noise level per state (None entries: estimate)."""
         if self.noise_std is None:
             return [None] * n_states
-        sigma = np.asarray(self.noise_std, dtype=float)
-        if sigma.ndim == 0:
-            sigma = np.full(n_states, float(sigma))
-        if sigma.shape != (n_states,) or not np.all(np.isfinite(sigma) & (sigma >= 0)):
-            raise ValueError(f"noise_std must be one non-negative finite number or one per "
-                             f"state ({n_states}); got {self.noise_std!r}.")
-        return [float(v) for v in sigma]
+        return list(_per_state(self.noise_std, n_states, "noise_std",
+                                    "non-negative finite number"))
+
+    def _noise(self, x, t):
+        """Per state (sigma list, phi array): given, or read from ``x``."""
+        n_states = x.shape[1]
+        if self.noise_std is None:
+            sigma, phi = state_noise(x, t)
+            sigma = list(sigma)
+        else:
+            sigma, phi = self._sigmas(n_states), np.zeros(n_states)
+        if self.noise_correlation is not None:
+            phi = _per_state(self.noise_correlation, n_states, "noise_correlation",
+                             "number in [0, 1)", 1.0)
+        self.noise_correlation_ = np.asarray(phi, float)
+        return sigma, self.noise_correlation_
 
     def _differentiate(self, x, t):
         x = np.asarray(x, dtype=float)
@@ -241,8 +292,9 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
             steps = np.diff(np.asarray(t, dtype=float))
         if not np.allclose(steps, steps.mean(), rtol=1e-6, atol=0):
             return self._irregular(x, np.concatenate([[0.0], np.cumsum(steps)]))
+        sigmas, phi = self._noise(x, None)
         self.windows_ = [choose_window(x[:, j], self.max_window, sigma=s)
-                         for j, s in enumerate(self._sigmas(x.shape[1]))]
+                         for j, s in enumerate(sigmas)]
         smooth = np.empty_like(x)
         out = np.empty_like(x)
         dt = float(steps.mean())
@@ -251,8 +303,9 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
             smooth[:, j] = savgol_filter(x[:, j], w, _POLYORDER, mode="interp")
             out[:, j] = _savgol_derivative(x[:, j], w, dt)
         self.smoothed_x_ = smooth
-        self.noise_gain_ = np.array([np.sum(savgol_coeffs(w, _POLYORDER, deriv=1, delta=dt) ** 2)
-                                     for w in self.windows_])
+        self.noise_gain_ = np.array([
+            ar1_gain(savgol_coeffs(w, _POLYORDER, deriv=1, delta=dt), float(p))
+            for w, p in zip(self.windows_, phi, strict=True)])
         self.noise_profile_ = np.ones_like(x)
         for j, w in enumerate(self.windows_):
             self.noise_profile_[:, j] = _edge_profile(x.shape[0], w, dt) / self.noise_gain_[j]
@@ -261,8 +314,9 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
     def _irregular(self, x, t):
         """Local cubic fits on the actual times: windows by the discrepancy principle,
         half-width windows within half a window of the ends (as on a grid)."""
+        sigmas, _ = self._noise(x, t)  # irregular times read as white
         self.windows_ = [choose_window(x[:, j], self.max_window, t, s)
-                         for j, s in enumerate(self._sigmas(x.shape[1]))]
+                         for j, s in enumerate(sigmas)]
         smooth = np.empty_like(x)
         out = np.empty_like(x)
         gains = np.empty_like(x)
@@ -279,6 +333,17 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
         return out
 
 
+def _per_state(value, n_states, name, what, high=np.inf) -> np.ndarray:
+    """``value`` (one number or one per state) as an (n_states,) array in [0, high)."""
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        arr = np.full(n_states, float(arr))
+    if arr.shape != (n_states,) or not np.all(np.isfinite(arr) & (arr >= 0) & (arr < high)):
+        raise ValueError(f"{name} must be one {what} or one per state ({n_states}); got "
+                         f"{value!r}.")
+    return arr
+
+
 def default_differentiation():
     return AdaptiveSavitzkyGolay()
 
@@ -287,9 +352,10 @@ def derivative_noise_std(method, x, t, x_dot, sigma=None):
     """Standard deviation of the noise that ``method`` passes into each derivative.
 
     The states' noise level ``sigma`` comes from high-order differences (on the actual
-    times; estimated from ``x`` when not given); the method's gain on white noise from
-    its own coefficients (the default) or, for any other method, from its response to
-    a small white-noise perturbation (exact for linear methods).
+    times; estimated from ``x`` when not given); the method's gain from its own
+    coefficients (the default: on AR(1) noise where the noise reads as correlated) or,
+    for any other method, from its response to a small white-noise perturbation (exact
+    for linear methods on white noise).
     """
     if sigma is None:
         sigma = noise_level(x, t if np.ndim(t) else None)
@@ -319,13 +385,17 @@ def differentiate(method, trajectories, times):
             f"ps.SmoothedFiniteDifference(); got {type(method).__name__}."
         )
     out, noise, weights = [], [], []
-    sigma = noise_level(list(trajectories), [t if np.ndim(t) else None for t in times])
+    grids = [t if np.ndim(t) else None for t in times]
+    sigma = noise_level(list(trajectories), grids)
     if isinstance(method, AdaptiveSavitzkyGolay):
         if method.noise_std is not None:
             sigma = np.asarray(method._sigmas(len(sigma)))
-        elif len(trajectories) > 1:  # one instrument: its noise level from all samples
+        else:  # one instrument: its noise level (white or AR(1)) from all samples
+            sigma, phi = state_noise(list(trajectories), grids)
             method = copy.copy(method)
             method.noise_std = sigma
+            if method.noise_correlation is None:
+                method.noise_correlation = phi
     for x, t in zip(trajectories, times, strict=True):
         d = np.asarray(method(x, t), dtype=float)
         if d.shape != x.shape or not np.all(np.isfinite(d)):

@@ -11,7 +11,7 @@ from scipy.optimize import nnls
 
 from .._core import saving
 from .._core import validation as val
-from .._core.derivatives import differentiate, noise_level
+from .._core.derivatives import differentiate, noise_level, state_noise
 from .._core.library import check_library, fit_library
 from .._core.local_fits import positions as time_positions
 from .._core.reprs import estimator_repr
@@ -188,7 +188,7 @@ class DynamicSINDy:
         weights_t = as_t(np.stack(weights))
         inputs = as_t(_encoder_inputs(np.stack(trajs), xdot).transpose(0, 2, 1))
         exact = VaryingCoefficients(trajs, times, [th / self.feature_scale_ for th in thetas],
-                                    self.derivative_scale_, noise_level(trajs, times))
+                                    self.derivative_scale_, *state_noise(trajs, times))
         choices = []
 
         def decide(model):  # between the generator's phases

@@ -29,10 +29,13 @@ MIN_KNOTS = 16
 NOISE_FLOOR = 1e-3  # measurement noise floor, relative to each state's std
 
 
-def resolution(x: np.ndarray, t: np.ndarray) -> tuple[int, int]:
-    """(number of knots, samples per integration window) for a trajectory."""
+def resolution(x: np.ndarray, t: np.ndarray, noise_std=None) -> tuple[int, int]:
+    """(number of knots, samples per integration window) for a trajectory (the
+    differentiator's windows at the states' noise levels ``noise_std``, estimated from
+    ``x`` when not given)."""
     n = len(t)
-    windows = [choose_window(x[:, j], t=t) for j in range(x.shape[1])]
+    sigmas = [None] * x.shape[1] if noise_std is None else [float(s) for s in noise_std]
+    windows = [choose_window(x[:, j], t=t, sigma=sigmas[j]) for j in range(x.shape[1])]
     half = max(1.0, min(windows) / 2.0)  # samples between knots
     n_knots = int(np.clip(round((n - 1) / half) + 3, MIN_KNOTS, MAX_KNOTS))
     step = (n - 1) / (n_knots - 3)  # samples between knots after the clip
@@ -54,21 +57,32 @@ class VaryingCoefficients:
     thetas : list of (n, F) arrays, the library divided by ``feature_scale``
     derivative_scale : (S,) array: the normalisation of each equation
     noise_std : (S,) array: the measurement noise of each state
+    noise_correlation : (S,) array, optional
+        Its correlation between neighbouring samples (AR(1); default white). An
+        equation whose state's noise is correlated gets normal equations whitened for
+        it (:class:`~.vcm.LevelGram`; one set per distinct correlation).
     """
 
     @timed("stage one: exact model")
-    def __init__(self, trajectories, times, thetas, derivative_scale, noise_std):
+    def __init__(self, trajectories, times, thetas, derivative_scale, noise_std,
+                 noise_correlation=None):
         t0 = min(float(t[0]) for t in times)
         t1 = max(float(t[-1]) for t in times)
         longest = int(np.argmax([len(t) for t in times]))
-        self.n_knots, self.window = resolution(trajectories[longest], times[longest])
+        n_states = len(derivative_scale)
+        phi = (np.zeros(n_states) if noise_correlation is None
+               else np.asarray(noise_correlation, float))
+        floor = NOISE_FLOOR * np.std(np.vstack(trajectories), axis=0)
+        noise = np.maximum(np.asarray(noise_std, float), floor)
+        self.n_knots, self.window = resolution(
+            trajectories[longest], times[longest], noise if np.any(phi > 0) else None)
         self.span = (t0, t1)
         states = [np.asarray(x, float) / derivative_scale for x in trajectories]
-        self.gram = LevelGram(states, times, thetas, self.n_knots, self.span, self.window)
-        floor = NOISE_FLOOR * np.std(np.vstack(trajectories), axis=0)
-        noise = np.maximum(np.asarray(noise_std, float), floor) / derivative_scale
-        self.models = [EquationModel(self.gram.equation(i), noise[i] ** 2)
-                       for i in range(len(derivative_scale))]
+        grams = {p: LevelGram(states, times, thetas, self.n_knots, self.span, self.window, p)
+                 for p in sorted(set(phi.tolist()))}
+        noise = noise / derivative_scale
+        self.models = [EquationModel(grams[float(phi[i])].equation(i), noise[i] ** 2)
+                       for i in range(n_states)]
         self.basis = spline_basis(times[longest], self.n_knots, self.span)
 
     def basis_at(self, times):

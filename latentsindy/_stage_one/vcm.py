@@ -81,6 +81,14 @@ class LevelGram:
     n_knots : int
     span : (t0, t1), the knots' range (one clock for every trajectory)
     window : int, samples per window
+    phi : float
+        Correlation of the measurement noise between neighbouring samples (AR(1);
+        default 0, white). With ``phi > 0`` (uniform sampling) both sides are whitened
+        within each window (generalised least squares: ``z_i - phi z_(i-1)``, scaled
+        by ``1 / sqrt(1 - phi^2)``, the window's first sample dropped), so every
+        sample's new information counts once (correlation 0.9 between 2000 samples
+        leaves about 105 independent ones) and the errors have the noise's marginal
+        variance; each window's level stays a constant and is profiled out as before.
 
     Attributes
     ----------
@@ -88,7 +96,7 @@ class LevelGram:
         Independent observations: samples minus one level per window.
     """
 
-    def __init__(self, states, times, thetas, n_knots, span, window):
+    def __init__(self, states, times, thetas, n_knots, span, window, phi=0.0):
         n_features, n_states = thetas[0].shape[1], states[0].shape[1]
         self.n_knots = n_knots
         self.n = 0.0
@@ -113,7 +121,7 @@ class LevelGram:
             for lo in range(0, len(starts), per_block):
                 sl = slice(lo, lo + per_block)
                 self._add(*_level_integrals(x, t, th, first, values, starts[sl], stops[sl],
-                                            reach))
+                                            reach, float(phi)))
         self.band = self.band[:, :n_knots]
         self.spline_const = self.spline_const[:n_knots]
         self.spline_y = self.spline_y[:n_knots]
@@ -174,8 +182,9 @@ def _uniform_windows(step):
     return np.all(~used | (np.abs(step - mean[:, None]) <= 1e-6 * mean[:, None]), axis=1)
 
 
-def _level_integrals(x, t, theta, first, values, starts, stops, reach):
-    """Centred cumulative integrals of theta_k B_m within some windows of a trajectory.
+def _level_integrals(x, t, theta, first, values, starts, stops, reach, phi=0.0):
+    """Centred cumulative integrals of theta_k B_m within some windows of a trajectory
+    (whitened for AR(1) noise of correlation ``phi``: see :class:`LevelGram`).
 
     Returns (cum (W, L, reach, F) against knots start + l, start knot of each window
     (W,), centred states (W, L, S), mask (W, L)): window w holds samples
@@ -209,10 +218,24 @@ def _level_integrals(x, t, theta, first, values, starts, stops, reach):
                                                                          None] * correction
     cum = np.zeros_like(point)
     cum[:, 1:] = np.cumsum(step[..., None, None] * area, axis=1)
+    y = x[idx] * mask[..., None]
+    if phi > 0:
+        mask = _whitened(mask, 0.0)
+        cum = _whitened(cum, phi) * mask[..., None, None]
+        y = _whitened(y, phi) * mask[..., None]
     # profile out each window's level: centre over its samples
     count = mask.sum(axis=1)
     cum = (cum - (cum * mask[..., None, None]).sum(axis=1, keepdims=True)
            / count[:, None, None, None]) * mask[..., None, None]
-    y = x[idx] * mask[..., None]
     y = (y - y.sum(axis=1, keepdims=True) / count[:, None, None]) * mask[..., None]
     return cum, start, y, mask
+
+
+def _whitened(values, phi):
+    """``values`` (W, L, ...) whitened along each window's samples for AR(1) noise of
+    correlation ``phi``: ``(z_i - phi z_(i-1)) / sqrt(1 - phi^2)``, the first sample
+    dropped (zero; for ``phi = 0`` only that). A window's level ``c`` becomes
+    ``c sqrt((1 - phi) / (1 + phi))`` on every remaining sample: still a constant."""
+    out = np.zeros_like(values)
+    out[:, 1:] = (values[:, 1:] - phi * values[:, :-1]) / np.sqrt(1.0 - phi**2)
+    return out

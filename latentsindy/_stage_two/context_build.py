@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 
 from .._core import validation as val
-from .._core.derivatives import AdaptiveSavitzkyGolay, measurement_noise, window_capped
+from .._core.derivatives import AdaptiveSavitzkyGolay, marginal_noise, window_capped
 from .._core.library import feature_expressions
 from .._core.timing import timed
 from .context import Context, floor_noise
@@ -27,7 +27,7 @@ def build(model, trajs, times, names, first, closure_library, support, threshold
         capped.append(cap)
     library = model.library_
     thetas = [np.asarray(a, dtype=float) for a in library.transform(smoothed)]
-    sigma = floor_noise(measurement_noise(list(trajs), list(times)), trajs)
+    sigma = floor_noise(marginal_noise(list(trajs), list(times)), trajs)
     span = int(max(spans))
     return Context(tuple(names), tuple(first.feature_names),
                    tuple(feature_expressions(library, first.feature_names, names)),
@@ -88,7 +88,7 @@ def bare(library, trajs, times, names, features, closure_library, support, thres
     """A context without stage one (a panel): the data as measured, the library on them
     (:func:`as_measured`), the noise pooled over the recordings."""
     observed = [np.asarray(x, float) for x in trajs]
-    sigma = floor_noise(measurement_noise(observed, list(times)), observed)
+    sigma = floor_noise(marginal_noise(observed, list(times)), observed)
     ctx = Context(tuple(names), tuple(features),
                   tuple(feature_expressions(library, list(features), names)),
                   [np.asarray(tk, float) for tk in times], observed, observed, [], sigma,

@@ -189,3 +189,36 @@ def test_random_sample_times_leave_no_quadrature_misfit():
         fit = model.fit((1,), ())
         assert fit.noise_variance / model.noise_variance < 1.3, random_times
         assert fit.constants[0] * scale[1] == pytest.approx(-1.0, abs=0.005)
+
+
+def test_ar1_noise_is_whitened_in_the_integral_form():
+    """xdot = y, ydot = -x under AR(1) noise of correlation 0.9 (1% of the std), 2000
+    samples, 30 noise draws: with the noise's correlation the normal equations are
+    whitened (generalised least squares), each window losing its first sample. The
+    constant's estimate scatters about half as much as without (measured 0.53; bar
+    0.7), its posterior standard deviation is 0.6-1.5 of that scatter (measured 0.75;
+    white statistics: 0.61 of a scatter twice as wide), and its mean is unbiased."""
+    t = np.linspace(0, 40, 2000)
+    clean = np.column_stack([np.sin(t), np.cos(t)])
+    sigma = 0.01 * clean.std(axis=0)
+    theta_of = lambda x: np.column_stack([np.ones(len(t)), x])  # noqa: E731
+    estimates, reported = {0.0: [], 0.9: []}, {0.0: [], 0.9: []}
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        e = np.zeros_like(clean)
+        for k in range(1, len(t)):
+            e[k] = 0.9 * e[k - 1] + np.sqrt(1 - 0.81) * rng.standard_normal(2)
+        x = clean + sigma * e
+        for phi in estimates:
+            vc = VaryingCoefficients([x], [t], [theta_of(x)], np.ones(2), sigma,
+                                     np.full(2, phi))
+            fit = vc.models[1].fit((1,), ())
+            estimates[phi].append(fit.constants[0])
+            reported[phi].append(np.sqrt(fit.constant_cov[0, 0]))
+    windows = len(vcm.window_starts(len(t), vc.window))
+    white_n = LevelGram([x], [t], [theta_of(x)], vc.n_knots, vc.span, vc.window).n
+    assert vc.models[1].g.n == white_n - windows
+    scatter = {phi: np.std(v) for phi, v in estimates.items()}
+    assert scatter[0.9] < 0.7 * scatter[0.0]
+    assert 0.6 < np.median(reported[0.9]) / scatter[0.9] < 1.5
+    assert abs(np.mean(estimates[0.9]) + 1.0) < 3 * scatter[0.9] / np.sqrt(30)

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from ..._core.coloured import ar1_noise
-from ..._core.derivatives import measurement_noise
+from ..._core.derivatives import marginal_noise
 from ..._core.oscillation import crossing_periods
 from ..._core.parallel import map_on
 from ..._core.timing import timed
@@ -122,10 +122,8 @@ class Problem:
         self.observed = [np.asarray(x, float) for x in observed]
         stds = np.std(np.vstack(self.observed), axis=0)
         stds[stds == 0] = 1.0
-        sigma = measurement_noise(self.observed, self.times)
-        coloured, self.phi = ar1_noise(self.observed, self.times)
-        sigma = np.array([c if c is not None else s for c, s in zip(coloured, sigma,
-                                                                    strict=True)])
+        sigma = marginal_noise(self.observed, self.times)
+        _, self.phi = ar1_noise(self.observed, self.times)
         if options.noise is not None:
             sigma = np.asarray(options.noise, float)
         self.sigma = np.maximum(sigma, NOISE_FLOOR * stds)  # exact data: see NOISE_FLOOR
