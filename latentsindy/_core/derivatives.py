@@ -241,8 +241,8 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
         of :func:`noise_level` otherwise).
     noise_correlation : float or array (n_states,), optional
         The noise's correlation between neighbouring samples (AR(1)), used for the
-        derivative's noise gain. Default: estimated with the level when ``noise_std``
-        is not given, otherwise 0 (white).
+        derivative's noise gain on a uniform grid. Default: estimated with the level
+        when ``noise_std`` is not given, otherwise 0 (white).
 
     Examples
     --------
@@ -303,12 +303,13 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
             smooth[:, j] = savgol_filter(x[:, j], w, _POLYORDER, mode="interp")
             out[:, j] = _savgol_derivative(x[:, j], w, dt)
         self.smoothed_x_ = smooth
-        self.noise_gain_ = np.array([
-            ar1_gain(savgol_coeffs(w, _POLYORDER, deriv=1, delta=dt), float(p))
-            for w, p in zip(self.windows_, phi, strict=True)])
+        coeffs = [savgol_coeffs(w, _POLYORDER, deriv=1, delta=dt) for w in self.windows_]
+        self.noise_gain_ = np.array([ar1_gain(c, float(p))
+                                     for c, p in zip(coeffs, phi, strict=True)])
         self.noise_profile_ = np.ones_like(x)
-        for j, w in enumerate(self.windows_):
-            self.noise_profile_[:, j] = _edge_profile(x.shape[0], w, dt) / self.noise_gain_[j]
+        for j, w in enumerate(self.windows_):  # the white gain's shape along the series
+            self.noise_profile_[:, j] = (_edge_profile(x.shape[0], w, dt)
+                                         / np.sum(coeffs[j] ** 2))
         return out
 
     def _irregular(self, x, t):

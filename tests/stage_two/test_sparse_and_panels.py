@@ -104,3 +104,27 @@ def test_no_candidate_fitted_by_integration_is_an_unchecked_answer(monkeypatch):
     assert [d.kind for d in result.doubts] == ["not checked"]
     assert "could be fitted by integration" in result.doubts[0]
     assert "include_bias=True" in result.doubts[0]
+
+
+def test_every_carrier_that_fits_is_judged():
+    """Without stage one, the integral-form closure score on 11-sample recordings ranks
+    the carriers only roughly (prey-only LV panels: ``x^2`` above the exact ``x``, and
+    its system then could not be integrated), so every carrier whose hidden series fits
+    the data (within twice the best misfit) is proposed, not only the best-closing and
+    the best-fitting one."""
+    from latentsindy._core.library import fit_library
+    from latentsindy._stage_two import context_build
+    from latentsindy._stage_two.propose import hypotheses
+
+    xs, ts = _panel(20)
+    library = ps.PolynomialLibrary(degree=3)
+    _, features = fit_library(library, xs, ["x"])
+    support = np.zeros((1, len(features)), bool)
+    ctx = context_build.bare(library, xs, ts, ["x"], features,
+                             ps.PolynomialLibrary(degree=2), None, 0.05)
+    carriers = hypotheses._usable([
+        hypotheses.evaluate(hypotheses.single_term(1, len(features), 0, k, support), ctx,
+                            "carrier") for k in range(len(features))])
+    proposed = {p.structure.pivots for p in hypotheses.every_carrier(ctx, support)}
+    assert len(carriers) >= 3
+    assert {p.structure.pivots for p in carriers} <= proposed
