@@ -419,3 +419,18 @@ def test_every_pair_of_carriers_of_two_equations_is_one_shared_hidden_state():
     assert same.loadings[0, 0, 0] == 1.0
     assert same.loadings[1, 0, 0] == pytest.approx(2.0, rel=1e-9)
     assert same.support[0, 0] and same.support[1, 0] and same.support[0, 2]
+
+
+def test_held_out_error_of_a_hopeless_support_does_not_overflow():
+    """A target without variance (its variance floored at 1e-300) makes every fold's
+    relative error about 1e299, whose square overflows: the spread is still read (0
+    for equal folds, finite for unequal ones), with no warning."""
+    from latentsindy._stage_two.propose.closure import _cv
+
+    fold = lambda n: (np.eye(1), np.zeros((1, 1)), np.array([float(n)]),  # noqa: E731
+                      np.array([float(n)]), n)
+    support = np.zeros((1, 1), bool)
+    total, se = _cv([fold(10)] * 5, support)
+    assert np.isfinite(total) and total > 1e299 and se == 0.0
+    total, se = _cv([fold(10)] * 4 + [fold(20)], support)
+    assert np.isfinite(total) and 0 < se < total

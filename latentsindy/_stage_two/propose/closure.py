@@ -309,7 +309,12 @@ def _cv(folds, support):
                 c = _solve((gram - g_f)[np.ix_(cols, cols)], (cross - c_f)[cols, k])
                 resid = yy_f[k] - 2 * c @ c_f[cols, k] + c @ g_f[np.ix_(cols, cols)] @ c
             errs[f] += max(float(resid), 0.0) / (n * var[k] * m)
-    return float(errs.sum()), float(np.std(errs * len(folds), ddof=1) / np.sqrt(len(folds)))
+    # a near-singular fold's fit can miss by 1e296, whose square overflows: then the
+    # spread is taken in units of the largest error
+    top = float(np.max(np.abs(errs)))
+    scale = top if top > 1e100 else 1.0
+    spread = scale * np.std(errs / scale * len(folds), ddof=1)
+    return float(errs.sum()), float(spread / np.sqrt(len(folds)))
 
 
 def refit_integral(support, thetas, hidden, times, span):
