@@ -62,6 +62,17 @@ def ar1_noise(x, t=None):
     return sigma, phi
 
 
+def ar1_gain(coeffs, phi: float) -> float:
+    """Variance gain of the linear filter ``coeffs`` on AR(1) noise of unit variance and
+    correlation ``phi`` between neighbouring samples (``sum c_i c_j phi^|i-j|``; white
+    noise: ``sum c_i^2``)."""
+    c = np.asarray(coeffs, float)
+    if phi <= 0:
+        return float(np.sum(c**2))
+    lags = np.abs(np.subtract.outer(np.arange(len(c)), np.arange(len(c))))
+    return float(c @ (phi**lags) @ c)
+
+
 def _ar1_fit(v, ms):
     """(misfit, log sigma^2, phi): the variances ``v`` at spacings ``ms`` as AR(1)
     noise alone."""

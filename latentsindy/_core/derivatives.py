@@ -19,7 +19,7 @@ import pysindy as ps
 from scipy.signal import savgol_coeffs, savgol_filter
 
 from . import local_fits
-from .coloured import ar1_noise
+from .coloured import ar1_gain, ar1_noise
 from .local_fits import ORDER as _POLYORDER
 from .timing import timed
 
@@ -106,17 +106,6 @@ def marginal_noise(x, t=None) -> np.ndarray:
     coloured, _ = ar1_noise(x, t)
     return np.array([c if c is not None else s for c, s in zip(coloured, sigma,
                                                                strict=True)])
-
-
-def ar1_gain(coeffs, phi: float) -> float:
-    """Variance gain of the linear filter ``coeffs`` on AR(1) noise of unit variance and
-    correlation ``phi`` between neighbouring samples (``sum c_i c_j phi^|i-j|``; white
-    noise: ``sum c_i^2``)."""
-    c = np.asarray(coeffs, float)
-    if phi <= 0:
-        return float(np.sum(c**2))
-    lags = np.abs(np.subtract.outer(np.arange(len(c)), np.arange(len(c))))
-    return float(c @ (phi**lags) @ c)
 
 
 def _by_orders(x):

@@ -6,8 +6,8 @@ import pytest
 from scipy.signal import savgol_coeffs
 
 from latentsindy._core import coloured
-from latentsindy._core.coloured import HIGH, ar1_noise
-from latentsindy._core.derivatives import AdaptiveSavitzkyGolay, ar1_gain, state_noise
+from latentsindy._core.coloured import HIGH, ar1_gain, ar1_noise
+from latentsindy._core.derivatives import AdaptiveSavitzkyGolay, state_noise
 
 
 def _ar1(rng, n, cols, phi):
