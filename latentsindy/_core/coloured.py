@@ -62,6 +62,15 @@ def ar1_noise(x, t=None):
     return sigma, phi
 
 
+def with_ar1(white, x, t=None) -> tuple[np.ndarray, np.ndarray]:
+    """``(sigma, phi)`` per column: the white levels ``white``, with AR(1) noise's
+    marginal level where :func:`ar1_noise` reads the noise of ``x`` as coloured."""
+    coloured, phi = ar1_noise(x, t)
+    sigma = np.array([c if c is not None else w for c, w in zip(coloured, white,
+                                                                 strict=True)])
+    return sigma, np.asarray(phi, float)
+
+
 def ar1_gain(coeffs, phi: float) -> float:
     """Variance gain of the linear filter ``coeffs`` on AR(1) noise of unit variance and
     correlation ``phi`` between neighbouring samples (``sum c_i c_j phi^|i-j|``; white

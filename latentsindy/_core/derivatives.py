@@ -19,7 +19,7 @@ import pysindy as ps
 from scipy.signal import savgol_coeffs, savgol_filter
 
 from . import local_fits
-from .coloured import ar1_gain, ar1_noise
+from .coloured import ar1_gain, with_ar1
 from .local_fits import ORDER as _POLYORDER
 from .timing import timed
 
@@ -92,20 +92,13 @@ def state_noise(x, t=None) -> tuple[np.ndarray, np.ndarray]:
     (:func:`.coloured.ar1_noise`: its marginal level, which differences of neighbouring
     samples read several times too low), otherwise :func:`noise_level` and ``phi = 0``.
     Lists of recordings are pooled, as in :func:`noise_level`."""
-    white = noise_level(x, t)
-    coloured, phi = ar1_noise(x, t)
-    sigma = np.array([c if c is not None else w for c, w in zip(coloured, white,
-                                                                 strict=True)])
-    return sigma, np.asarray(phi, float)
+    return with_ar1(noise_level(x, t), x, t)
 
 
 def marginal_noise(x, t=None) -> np.ndarray:
     """:func:`measurement_noise`, with AR(1) noise's marginal level where the noise
     reads as correlated in time (:func:`.coloured.ar1_noise`)."""
-    sigma = measurement_noise(x, t)
-    coloured, _ = ar1_noise(x, t)
-    return np.array([c if c is not None else s for c, s in zip(coloured, sigma,
-                                                               strict=True)])
+    return with_ar1(measurement_noise(x, t), x, t)[0]
 
 
 def _by_orders(x):
