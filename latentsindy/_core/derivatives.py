@@ -369,16 +369,16 @@ def differentiate(method, trajectories, times):
         )
     out, noise, weights = [], [], []
     grids = [t if np.ndim(t) else None for t in times]
-    sigma = noise_level(list(trajectories), grids)
-    if isinstance(method, AdaptiveSavitzkyGolay):
-        if method.noise_std is not None:
-            sigma = np.asarray(method._sigmas(len(sigma)))
-        else:  # one instrument: its noise level (white or AR(1)) from all samples
-            sigma, phi = state_noise(list(trajectories), grids)
-            method = copy.copy(method)
-            method.noise_std = sigma
-            if method.noise_correlation is None:
-                method.noise_correlation = phi
+    if not isinstance(method, AdaptiveSavitzkyGolay):
+        sigma = noise_level(list(trajectories), grids)
+    elif method.noise_std is not None:
+        sigma = np.asarray(method._sigmas(trajectories[0].shape[1]))
+    else:  # one instrument: its noise level (white or AR(1)) from all samples
+        sigma, phi = state_noise(list(trajectories), grids)
+        method = copy.copy(method)
+        method.noise_std = sigma
+        if method.noise_correlation is None:
+            method.noise_correlation = phi
     for x, t in zip(trajectories, times, strict=True):
         d = np.asarray(method(x, t), dtype=float)
         if d.shape != x.shape or not np.all(np.isfinite(d)):

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..._core.coloured import ar1_noise
-from ..._core.derivatives import marginal_noise
+from ..._core.coloured import with_ar1
+from ..._core.derivatives import measurement_noise
 from ..._core.oscillation import crossing_periods
 from ..._core.parallel import map_on
 from ..._core.timing import timed
@@ -122,8 +122,8 @@ class Problem:
         self.observed = [np.asarray(x, float) for x in observed]
         stds = np.std(np.vstack(self.observed), axis=0)
         stds[stds == 0] = 1.0
-        sigma = marginal_noise(self.observed, self.times)
-        _, self.phi = ar1_noise(self.observed, self.times)
+        sigma, self.phi = with_ar1(measurement_noise(self.observed, self.times),
+                                   self.observed, self.times)
         if options.noise is not None:
             sigma = np.asarray(options.noise, float)
         self.sigma = np.maximum(sigma, NOISE_FLOOR * stds)  # exact data: see NOISE_FLOOR
