@@ -24,8 +24,9 @@ der Pol, Rossler, Brusselator) at 0-5%, reads as coloured.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
-from scipy.optimize import nnls
 
 from .local_fits import is_uniform
 
@@ -84,9 +85,12 @@ def ar1_gain(coeffs, phi: float) -> float:
 
 def _ar1_fit(v, ms):
     """(misfit, log sigma^2, phi): the variances ``v`` at spacings ``ms`` as AR(1)
-    noise alone."""
-    (err, level), p = min((_misfit(np.log(v), p ** ms), p) for p in _PHIS)
-    return err, level, p
+    noise alone (every correlation of the grid at once)."""
+    log_g = _g_table(len(ms))[1]
+    levels = np.mean(np.log(v) - log_g, axis=1)
+    errs = np.sum((np.log(v) - levels[:, None] - log_g) ** 2, axis=1)
+    k = int(np.argmin(errs))
+    return float(errs[k]), float(levels[k]), float(_PHIS[k])
 
 
 def _ar1_signal_fit(v, ms):
@@ -96,19 +100,42 @@ def _ar1_signal_fit(v, ms):
     reads a correlation above :data:`HIGH` or misses the curve (AR(1) 0.9 under an
     oscillation of about 100 samples per cycle: 0.96-0.98 in 6 of 20 states), this
     reads it again with the signal taken out, on :data:`M` and then on :data:`M_WIDE`
-    spacings (18 of those 20 states, 0.80-0.94, the level 0.7-1.3 of the truth)."""
-    signal = (ms / ms[-1]) ** 8
-    best = (np.inf, 0.0, 0.0)
-    for p in _PHIS:
-        g = np.polyval(_G[::-1], p ** ms)
-        design = np.stack([g, signal], axis=1)
-        coef = nnls(design / v[:, None], np.ones(len(v)))[0]
-        if coef[0] <= 0:
-            continue
-        err = float(np.sum(np.log(v / (design @ coef)) ** 2))
-        if err < best[0]:
-            best = (err, float(np.log(coef[0])), float(p))
-    return best
+    spacings (18 of those 20 states, 0.80-0.94, the level 0.7-1.3 of the truth).
+
+    The two-coefficient non-negative least squares is solved in closed form for every
+    correlation of the grid at once: the unconstrained solution where both are
+    positive, else the better of the two one-coefficient fits (both positive: the
+    columns are)."""
+    g = _g_table(len(ms))[0]  # (P, M)
+    a0, a1 = g / v, (ms / ms[-1]) ** 8 / v  # weighted columns: (P, M), (M,)
+    s00, s01, s11 = np.sum(a0 * a0, axis=1), a0 @ a1, float(a1 @ a1)
+    b0, b1 = np.sum(a0, axis=1), float(np.sum(a1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        det = s00 * s11 - s01**2
+        c0, c1 = (s11 * b0 - s01 * b1) / det, (s00 * b1 - s01 * b0) / det
+    inside = (c0 > 0) & (c1 > 0)
+    # on the boundary: noise alone (b0 / s00, 0) or signal alone (0, b1 / s11), whichever
+    # leaves less residual (len(v) - b^2 / s for each)
+    noise_alone = b0**2 / s00 >= b1**2 / s11
+    c0 = np.where(inside, c0, np.where(noise_alone, b0 / s00, 0.0))
+    c1 = np.where(inside, c1, np.where(noise_alone, 0.0, b1 / s11))
+    ok = c0 > 0
+    if not ok.any():
+        return np.inf, 0.0, 0.0
+    model = c0[:, None] * g + c1[:, None] * (ms / ms[-1]) ** 8
+    errs = np.where(ok, np.sum(np.log(v / np.where(ok[:, None], model, 1.0)) ** 2, axis=1),
+                    np.inf)
+    k = int(np.argmin(errs))
+    return float(errs[k]), float(np.log(c0[k])), float(_PHIS[k])
+
+
+@functools.cache
+def _g_table(spacings):
+    """``g(phi^m)`` and its log for every correlation of the grid (rows) and spacing
+    ``m = 1 .. spacings`` (columns)."""
+    g = np.polyval(_G[::-1], _PHIS[:, None] ** np.arange(1, spacings + 1))
+    g.flags.writeable = False
+    return g, np.log(g)
 
 
 def _dilated(col, m):
@@ -118,11 +145,3 @@ def _dilated(col, m):
 
 def _robust_var(d):
     return float((1.4826 * np.median(np.abs(d - np.median(d)))) ** 2)
-
-
-def _misfit(log_v, q):
-    """(log-space misfit, log sigma^2) of variances ``exp(log_v)`` against
-    ``sigma^2 g(q)`` with the best ``sigma``."""
-    log_g = np.log(np.polyval(_G[::-1], q))
-    level = float(np.mean(log_v - log_g))
-    return float(np.sum((log_v - level - log_g) ** 2)), level
