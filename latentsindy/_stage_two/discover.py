@@ -286,7 +286,7 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
     if refine:
         with single_thread():
             ordered, uncertain = judge_all(proposals, ctx, RefineOptions(device=device), max_hidden,
-                                           NESTED)
+                                           NESTED, blind=bool(blind))
             if ordered:
                 result = from_verdicts(ordered, uncertain, ctx, first, hidden_names,
                                        blind_path.note(panel) if blind else None)

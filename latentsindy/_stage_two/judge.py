@@ -40,18 +40,26 @@ RESCALE = 0.5
 # One-sided level of :func:`paired_evidence`: the held-out data favour one system over
 # another when its paired errors are lower with this confidence (t test over segments).
 FAVOURED = 0.975
+# First fits within this many times the best one's misfit (noise variances, the best
+# taken as at least 1) go on to term selection and the held-out score; the others cannot
+# come close on held-out data. Without stage one (``blind``) the closures are fitted in
+# integral form to a rough hidden series, so a right carrier can start from a wrong
+# closure several times above its mended fit: ``BLIND_CONTEND`` there.
+CONTEND = 2.0
+BLIND_CONTEND = 4.0
 
 
 def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
-              max_hidden: int = 3, nested: bool = False):
+              max_hidden: int = 3, nested: bool = False, blind: bool = False):
     """Judge the proposals: refine each; when none reproduces the data to about its
     noise level, also refine the best single-hidden-state proposals with the hidden
     state's rate as a second state; then select terms stepwise and score on held-out
-    data those whose in-sample misfit is within twice the best one's (the others
-    cannot come close on held-out data). With ``nested``, when the best still misses the
+    data those whose in-sample misfit is within ``CONTEND`` times the best one's (the
+    others cannot come close on held-out data). With ``nested``, when the best still misses the
     data by more than ``NESTED_TRIGGER`` noise variances, also
     the best single-hidden-state proposals with a hidden state inside the hidden
-    equation (:mod:`.nested`). Returns ``rank``'s result."""
+    equation (:mod:`.nested`). ``blind``: the proposals were made without stage one
+    (``BLIND_CONTEND``). Returns ``rank``'s result."""
     options = options or RefineOptions()
     progress(f"stage two: {len(proposals)} hypotheses to fit")
     # each refined in order, given up against the best before it (on a CPU two at a
@@ -60,7 +68,8 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     best = min((t.fit.residual_variance for t in trials), default=np.inf)
     noise = _noise_from_fit(trials, best) if options.noise is None else None
     if noise is not None and not spent("the judgement in the noise level of the best fit"):
-        return judge_all(proposals, ctx, replace(options, noise=noise), max_hidden, nested)
+        return judge_all(proposals, ctx, replace(options, noise=noise), max_hidden, nested,
+                         blind)
     if best > RATE_TRIGGER and max_hidden >= 2 and not spent("hidden states' rates"):
         progress("no first-order law reproduces the data: hidden states' rates")
         trials += first_fits(_rate_candidates(proposals, ctx), ctx, options, trials)
@@ -76,7 +85,8 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
         best = min((t.fit.residual_variance for t in trials), default=np.inf)
     # the trials close enough to the best are finished independently of one another:
     # on a CPU, a second core takes some of them (the same verdicts, in the same order)
-    contending = [t.fit.residual_variance <= 2.0 * max(best, 1.0) for t in trials]
+    bound = (BLIND_CONTEND if blind else CONTEND) * max(best, 1.0)
+    contending = [t.fit.residual_variance <= bound for t in trials]
     finishing = [t for t, c in zip(trials, contending, strict=True) if c]
     # the larger systems first: selecting terms costs about in proportion to the free
     # coefficients (more terms to drop, a larger fit each time; on Lorenz with z hidden
