@@ -107,25 +107,24 @@ def _ar1_signal_fit(v, ms):
     positive, else the better of the two one-coefficient fits (both positive: the
     columns are)."""
     g = _g_table(len(ms))[0]  # (P, M)
-    a0, a1 = g / v, (ms / ms[-1]) ** 8 / v  # weighted columns: (P, M), (M,)
-    s00, s01, s11 = np.sum(a0 * a0, axis=1), a0 @ a1, float(a1 @ a1)
-    b0, b1 = np.sum(a0, axis=1), float(np.sum(a1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        det = s00 * s11 - s01**2
-        c0, c1 = (s11 * b0 - s01 * b1) / det, (s00 * b1 - s01 * b0) / det
-    inside = (c0 > 0) & (c1 > 0)
-    # on the boundary: noise alone (b0 / s00, 0) or signal alone (0, b1 / s11), whichever
-    # leaves less residual (len(v) - b^2 / s for each)
-    noise_alone = b0**2 / s00 >= b1**2 / s11
-    c0 = np.where(inside, c0, np.where(noise_alone, b0 / s00, 0.0))
-    c1 = np.where(inside, c1, np.where(noise_alone, 0.0, b1 / s11))
-    ok = c0 > 0
-    if not ok.any():
-        return np.inf, 0.0, 0.0
-    model = c0[:, None] * g + c1[:, None] * (ms / ms[-1]) ** 8
-    errs = np.where(ok, np.sum(np.log(v / np.where(ok[:, None], model, 1.0)) ** 2, axis=1),
-                    np.inf)
+    signal = (ms / ms[-1]) ** 8
+    a0, a1 = g / v, signal / v  # weighted columns: (P, M), (M,)
+    n0, n1 = np.sqrt(np.sum(a0 * a0, axis=1)), float(np.sqrt(a1 @ a1))
+    r = (a0 @ a1) / (n0 * n1)  # the columns' cosine: the unit-column Gram is [[1, r], [r, 1]]
+    b0, b1 = np.sum(a0, axis=1) / n0, float(np.sum(a1)) / n1
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        u0, u1 = (b0 - r * b1) / (1 - r * r), (b1 - r * b0) / (1 - r * r)
+        inside = np.isfinite(u0) & np.isfinite(u1) & (u0 > 0) & (u1 > 0)
+        # on the boundary: noise alone or signal alone, whichever leaves less residual
+        noise_alone = b0 >= b1
+        c0 = np.where(inside, u0, np.where(noise_alone, b0, 0.0)) / n0
+        c1 = np.where(inside, u1, np.where(noise_alone, 0.0, b1)) / n1
+        model = c0[:, None] * g + c1[:, None] * signal
+        errs = np.sum(np.log(v / model) ** 2, axis=1)
+    errs[~((c0 > 0) & np.isfinite(errs))] = np.inf
     k = int(np.argmin(errs))
+    if not np.isfinite(errs[k]):
+        return np.inf, 0.0, 0.0
     return float(errs[k]), float(np.log(c0[k])), float(_PHIS[k])
 
 

@@ -90,3 +90,38 @@ def test_a_bad_noise_correlation_is_an_error():
     with pytest.raises(ValueError, match=r"noise_correlation must be one number in \[0, 1\) "
                                          r"or one per state \(2\); got 1.0"):
         AdaptiveSavitzkyGolay(noise_std=0.1, noise_correlation=1.0)(np.ones((50, 2)), 0.1)
+
+
+def _signal_fit_by_nnls(v, ms):
+    """The reading with a signal's share, one non-negative least squares per
+    correlation of the grid (the definition the closed form must match)."""
+    from scipy.optimize import nnls
+
+    best = (np.inf, 0.0, 0.0)
+    for p in coloured._PHIS:
+        design = np.stack([np.polyval(coloured._G[::-1], p**ms), (ms / ms[-1]) ** 8], axis=1)
+        coef = nnls(design / v[:, None], np.ones(len(v)))[0]
+        if coef[0] > 0:
+            err = float(np.sum(np.log(v / (design @ coef)) ** 2))
+            if err < best[0]:
+                best = (err, float(np.log(coef[0])), float(p))
+    return best
+
+
+@pytest.mark.parametrize("v", [
+    np.r_[70.0 * np.ones(4), 70.0 * (1 + (np.arange(5, 13) / 6.0) ** 8)],  # noise + signal
+    70.0 * np.polyval(coloured._G[::-1], 0.9 ** np.arange(1, 13)) / 70.0,  # AR(1) alone
+    0.07 + (np.arange(1, 13) / 12.0) ** 8,  # mostly signal
+    np.r_[4.3e-31, 7.6e-4 * (np.arange(2, 13) / 2.0) ** 2],  # a near-exact series' spread
+])
+def test_closed_form_signal_fit_is_the_nonnegative_least_squares(v):
+    """The two-coefficient reading, solved in closed form for every correlation at
+    once, is the per-correlation NNLS one (same correlation, misfit and level to 1e-9),
+    and a spread over 30 decades raises no warning (warnings are errors here). (Where
+    both fit exactly, as on a signal without noise, every correlation ties to rounding
+    and either may be read; both then read the noise as white.)"""
+    ms = np.arange(1, 13)
+    err, level, phi = coloured._ar1_signal_fit(v, ms)
+    ref = _signal_fit_by_nnls(v, ms)
+    assert phi == ref[2]
+    assert (err, level) == pytest.approx(ref[:2], rel=1e-9, abs=1e-12)

@@ -155,3 +155,60 @@ def test_a_carrier_whose_closure_starts_wrong_still_contends():
     for k, v in truth.items():
         assert float(law[k]) == pytest.approx(v, rel=0.1)
     assert result.confident
+
+
+def test_a_state_whose_noise_reads_low_does_not_buy_terms():
+    """The oscillator x' = A y, y' = B x with B logistic and hidden, 63 samples at 12 per
+    cycle, 1% noise (``real_data.py``'s draw 2 there, to full precision): the data read
+    x's noise at 0.69 of the truth and y's at 1.0, and the right law's residuals in x
+    at 2.0 noise variances made ``x y`` in dx/dt pay. The judge puts the levels in
+    the proportions of the best first fit's white residuals (``judge._balanced_noise``),
+    and the observed equations are exact."""
+    data = systems.harmonic_oscillator(
+        A=-4.518920382116299, B=systems.Sigmoid(1.8960863805262678, 3.06678903447779,
+                                                at=6.101919387285499,
+                                                sharpness=1.3617123673767453),
+        t_end=10.0, n_times=63, x0=(-0.8260953228373363, -0.563530405201243), noise=0.01,
+        seed=1002)
+    y = sp.Symbol("y", real=True)
+    result = discover_hidden(data.x, ps.PolynomialLibrary(degree=2), t=data.t,
+                             feature_names=["x", "y"], hidden_names=["h"], verbose=False)
+    assert sp.Poly(result.rhs["x"], X, y).as_dict().keys() == {(0, 1)}
+    assert sp.expand(result.rhs["y"] - H * X) == 0
+    assert len(result.hidden_names) == 1
+
+
+def _trial(residuals, sigma):
+    """A judged trial's stand-in: one recording whose fitted path misses the data by
+    ``residuals`` (in units of ``sigma``)."""
+    from types import SimpleNamespace
+
+    path = np.zeros((len(residuals), residuals.shape[1] + 1))
+    observed = residuals * sigma + path[:, :-1]
+    problem = SimpleNamespace(n_obs=residuals.shape[1], phi=np.zeros(residuals.shape[1]),
+                              sigma=np.asarray(sigma, float), observed=[observed],
+                              trajectories=lambda fit: [path])
+    return SimpleNamespace(problem=problem, fit=None)
+
+
+def test_noise_levels_are_balanced_only_on_white_residuals():
+    """White residuals at 2 and 0.5 noise variances: the levels move to their
+    proportions (x's up by 2**0.5, y's down by 2**0.5: the product is kept). Residuals
+    that follow a signal (a missing term), a lone observed state or residuals within
+    ``IMBALANCE`` of each other change nothing."""
+    from latentsindy._stage_two import judge
+
+    rng = np.random.default_rng(0)
+    white = rng.standard_normal((400, 2)) * np.sqrt([2.0, 0.5])
+    sigma = np.array([0.1, 0.2])
+    balanced = np.array(judge._balanced_noise(_trial(white, sigma)))
+    ratio = balanced / sigma
+    assert ratio[0] == pytest.approx(np.sqrt(2.0), rel=0.1)
+    assert ratio[1] == pytest.approx(np.sqrt(0.5), rel=0.1)
+    assert np.prod(ratio) == pytest.approx(1.0, rel=1e-9)
+    smooth = white.copy()
+    smooth[:, 0] = np.sqrt(2.0) * np.sin(np.linspace(0, 6 * np.pi, 400)) * 1.5
+    assert judge._balanced_noise(_trial(smooth, sigma)) is None
+    assert judge._balanced_noise(_trial(white[:, :1], sigma[:1])) is None
+    even = rng.standard_normal((400, 2))
+    assert judge._balanced_noise(_trial(even, sigma)) is None
