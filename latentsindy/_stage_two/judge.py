@@ -154,14 +154,17 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
 
 def _noise_from_fit(trials, best):
     """The noise level the best first fit implies, where it is below the data's own
-    estimate by more than ``RESCALE`` in variance (else None).
+    estimate by more than ``RESCALE`` in variance, or where the states' levels are
+    out of proportion (else None).
 
     The data's estimate comes from differences of neighbouring samples, which at a few
     samples per cycle still hold the signal (prey-only Lotka-Volterra at 8 per cycle:
     12 times the true level; scores then read 0.01 and every system ties). A closed
     system that reproduces the data below that level shows the noise is lower; its
     residual (per degree of freedom) is the better estimate. Never below the floor
-    (exact data) and never raised: a misfit above the estimate may be a missing term."""
+    (exact data) and never raised: a misfit above the estimate may be a missing term.
+    Otherwise the observed states' levels may be balanced between them, their product
+    kept (:func:`_balanced_noise`)."""
     if not np.isfinite(best):
         return None
     if best >= RESCALE:
