@@ -108,6 +108,8 @@ def _ar1_signal_fit(v, ms):
     columns are)."""
     g = _g_table(len(ms))[0]  # (P, M)
     signal = (ms / ms[-1]) ** 8
+    scale = float(np.max(v))  # in units of the largest variance: any scale reads alike
+    v = v / scale
     a0, a1 = g / v, signal / v  # weighted columns: (P, M), (M,)
     n0, n1 = np.sqrt(np.sum(a0 * a0, axis=1)), float(np.sqrt(a1 @ a1))
     r = (a0 @ a1) / (n0 * n1)  # the columns' cosine: the unit-column Gram is [[1, r], [r, 1]]
@@ -125,7 +127,7 @@ def _ar1_signal_fit(v, ms):
     k = int(np.argmin(errs))
     if not np.isfinite(errs[k]):
         return np.inf, 0.0, 0.0
-    return float(errs[k]), float(np.log(c0[k])), float(_PHIS[k])
+    return float(errs[k]), float(np.log(c0[k]) + np.log(scale)), float(_PHIS[k])
 
 
 @functools.cache
@@ -133,8 +135,9 @@ def _g_table(spacings):
     """``g(phi^m)`` and its log for every correlation of the grid (rows) and spacing
     ``m = 1 .. spacings`` (columns)."""
     g = np.polyval(_G[::-1], _PHIS[:, None] ** np.arange(1, spacings + 1))
-    g.flags.writeable = False
-    return g, np.log(g)
+    log_g = np.log(g)
+    g.flags.writeable = log_g.flags.writeable = False
+    return g, log_g
 
 
 def _dilated(col, m):

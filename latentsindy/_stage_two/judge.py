@@ -24,7 +24,6 @@ from . import restate
 from .context import NESTED_TRIGGER, TIE, Context, floor_noise
 from .fit.field import ParametricSystem
 from .fit.refine import RefineOptions
-from .fit.shooting import BlowUp
 from .propose.nested import nested_proposals
 from .propose.proposal import close
 from .verdict import Verdict, build, finished, first_fits, selected_and_scored, unscored
@@ -178,9 +177,8 @@ def _noise_from_fit(trials, best):
 
 def _balanced_noise(trial):
     """The observed states' noise levels in the proportions the best first fit's
-    residuals show, their product kept (never raised on the whole), where those
-    residuals are white and their variances (in the data's estimate) differ by more
-    than ``IMBALANCE``; else None.
+    residuals show, where those residuals are white and their variances (in the data's
+    estimate) differ by more than ``IMBALANCE``; else None.
 
     On a few dozen samples the data's estimate of each state's level is good to only
     about 30% (oscillator at 12 per cycle, 10 draws x 10 noise draws: 0.68-1.58 of the
@@ -188,24 +186,36 @@ def _balanced_noise(trial):
     much and buys terms in its equation (x y in dx/dt at 2.0 noise variances against
     1.1 for y). A right fit's residuals estimate the ratio of the levels to about 10%.
     White: a missing term leaves residuals that follow the signal, correlated from
-    sample to sample (lag-1 autocorrelation above ``WHITE``), and then nothing
-    changes."""
+    sample to sample (lag-1 autocorrelation above ``WHITE``), and then nothing changes.
+
+    A state whose residual is below ``RESCALE`` is lowered to it, as
+    :func:`_noise_from_fit` lowers them all (its estimate held the signal); the others
+    are balanced with their product kept (never raised on the whole), each by at most
+    ``IMBALANCE`` in variance either way: at a few samples per cycle a missing term's
+    residual can pass as white, and its state's level is then raised by that much at
+    most."""
     problem, fit = trial.problem, trial.fit
     if problem.n_obs < 2 or np.any(np.asarray(problem.phi) > 0):
         return None
-    try:
-        paths = problem.trajectories(fit)
-    except BlowUp:
-        return None
+    paths = problem.trajectories(fit)  # a blow-up reads NaN, refused below
     res = [(x - z[:, :problem.n_obs]) / problem.sigma
            for x, z in zip(problem.observed, paths, strict=True)]
+    n = sum(len(r) for r in res)
+    dof = max(fit.n_data - fit.system.n_free - fit.starts.size, 1) / fit.n_data
     power = np.sum([np.sum(r**2, axis=0) for r in res], axis=0)
     lag = np.sum([np.sum(r[1:] * r[:-1], axis=0) for r in res], axis=0)
     if not (np.all(np.isfinite(power)) and np.all(power > 0)):
         return None
     if np.any(np.abs(lag / power) > WHITE) or power.max() <= IMBALANCE * power.min():
         return None
-    share = power / np.exp(np.mean(np.log(power)))  # geometric mean 1
+    variance = power / (n * dof)  # per state, in the data's estimate
+    share = np.where(variance < RESCALE, variance, 1.0)
+    rest = variance >= RESCALE
+    if rest.sum() >= 2:
+        mean = np.exp(np.mean(np.log(variance[rest])))  # geometric
+        share[rest] = np.clip(variance[rest] / mean, 1 / IMBALANCE, IMBALANCE)
+    if np.allclose(share, 1.0):
+        return None
     return tuple(float(s) for s in floor_noise(problem.sigma * np.sqrt(share),
                                                problem.observed))
 

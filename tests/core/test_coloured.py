@@ -110,7 +110,8 @@ def _signal_fit_by_nnls(v, ms):
 
 @pytest.mark.parametrize("v", [
     np.r_[70.0 * np.ones(4), 70.0 * (1 + (np.arange(5, 13) / 6.0) ** 8)],  # noise + signal
-    70.0 * np.polyval(coloured._G[::-1], 0.9 ** np.arange(1, 13)) / 70.0,  # AR(1) alone
+    np.polyval(coloured._G[::-1], 0.9 ** np.arange(1, 13)),  # AR(1) alone
+    1e-160 * np.polyval(coloured._G[::-1], 0.5 ** np.arange(1, 13)),  # tiny
     0.07 + (np.arange(1, 13) / 12.0) ** 8,  # mostly signal
     np.r_[4.3e-31, 7.6e-4 * (np.arange(2, 13) / 2.0) ** 2],  # a near-exact series' spread
 ])
