@@ -32,6 +32,7 @@ from ..._core.oscillation import crossing_periods
 from ..._core.parallel import map_on
 from ..._core.timing import timed
 from ..context import NOISE_FLOOR
+from .batches import make_batches, run_groups
 from .field import ParametricSystem
 from .least_squares import RESOLUTION, GiveUpWatch, covariance, levenberg_marquardt
 from .normal_equations import NormalEquations, as_array
@@ -149,6 +150,7 @@ class Problem:
         step = float(np.clip(stable_step(self.integrator, guesses, system.coef),
                              duration / MAX_GRID, duration / 2))
         self.groups = make_groups(self.times, self.observed, duration, step, options.device)
+        self.batches = make_batches(self.groups)  # a panel's recordings side by side
         self.carry = carry_over(self.groups, self.phi, dt)  # AR(1) noise: whitening
         self.n_segments = sum(g.n_segments for g in self.groups)
         starts = []
@@ -175,22 +177,23 @@ class Problem:
                                                 self.options.device)
         return self._integrators[key]
 
+    def runs(self, system, starts, sensitivities=True, components=None, blow_ups=False):
+        """``(group, segments, output)`` of :meth:`Integrator.run` for every group, in
+        order, integrated batch by batch (:func:`.batches.run_groups`)."""
+        return run_groups(self.integrator_for(system), system.coef, starts, self.groups,
+                          self.batches, sensitivities, components, blow_ups)
+
     # ------------------------------------------------------------- residuals
     def equations(self, system, starts, weights, rho, jacobian=True):
         """Normal equations (or the cost only) at (system, starts); ``weights`` (n_seg,)
         multiply each segment's data residuals (0: held out)."""
-        integrator = self.integrator_for(system)
-        coef = system.coef
         n, n_free = starts.shape[1], system.n_free
         eq = NormalEquations(n_free, self.n_segments, n)
         data_cost = 0.0
         sig = torch.as_tensor(self.sigma)
         scale = torch.as_tensor(self.scale)
         root = float(np.sqrt(rho))
-        for g in self.groups:
-            segs = np.arange(g.first, g.first + g.n_segments)
-            out = integrator.run(coef, starts[segs], g, sensitivities=jacobian,
-                                 components=self.n_obs)
+        for g, segs, out in self.runs(system, starts, jacobian, self.n_obs):
             (vals, sens), (ends, sens_end) = out if jacobian else ((out[0], None),
                                                                     (out[1], None))
             w = torch.as_tensor(weights[segs])[:, None, None] * g.mask[..., None]
@@ -253,12 +256,11 @@ class Problem:
     def _gap(self, system, starts):
         """Largest continuity gap between consecutive segments, in ``scale`` units."""
         worst = 0.0
-        for g in self.groups:
+        if all(g.n_segments < 2 for g in self.groups):
+            return worst
+        for g, segs, (_, ends) in self.runs(system, starts, False, components=0):
             if g.n_segments < 2:
                 continue
-            segs = np.arange(g.first, g.first + g.n_segments)
-            _, ends = self.integrator_for(system).run(system.coef, starts[segs], g,
-                                                      sensitivities=False, components=0)
             gap = (torch.as_tensor(starts[segs[1:]]) - ends[:-1]) / torch.as_tensor(self.scale)
             worst = max(worst, float(gap.abs().max()))
         return worst
@@ -275,12 +277,11 @@ class Problem:
         n_obs = self.n_obs
         worst = np.zeros(fit.starts.shape[1] - n_obs)
         unit = self.scale[n_obs:]
-        for g in self.groups:
+        if all(g.n_segments < 2 for g in self.groups):
+            return worst
+        for g, segs, (vals, ends) in self.runs(fit.system, fit.starts, False):
             if g.n_segments < 2:
                 continue
-            segs = np.arange(g.first, g.first + g.n_segments)
-            vals, ends = self.integrator_for(fit.system).run(
-                fit.system.coef, fit.starts[segs], g, sensitivities=False)
             hidden = vals.numpy()[g.mask.numpy()][:, n_obs:]
             rms = np.sqrt(np.mean(hidden**2, axis=0))
             spread = np.maximum(np.std(hidden, axis=0), 1e-2 * rms)
@@ -303,13 +304,10 @@ class Problem:
         """States at every sample of ``(system, starts)`` (NaN where it blows up)."""
         system, starts = pair
         out = [np.full((len(t), starts.shape[1]), np.nan) for t in self.times]
-        for g in self.groups:
-            segs = np.arange(g.first, g.first + g.n_segments)
-            try:
-                vals, _ = self.integrator_for(system).run(system.coef, starts[segs], g,
-                                                          sensitivities=False)
-            except BlowUp:
+        for g, _, run in self.runs(system, starts, False, blow_ups=True):
+            if run is None:  # this recording blows up
                 continue
+            vals = run[0]
             rows = g.sample_index[g.mask.numpy()]
             out[g.trajectory][rows] = vals.numpy()[g.mask.numpy()]
         return out
@@ -327,10 +325,7 @@ class Problem:
         except np.linalg.LinAlgError:
             return out
         n, p = fit.starts.shape[1], fit.system.n_free
-        for g in self.groups:
-            segs = np.arange(g.first, g.first + g.n_segments)
-            (_, sens), _ = self.integrator_for(fit.system).run(fit.system.coef, fit.starts[segs],
-                                                               g)
+        for g, segs, ((_, sens), _) in self.runs(fit.system, fit.starts):
             sens = torch.cat([sens[..., n:], sens[..., :n]], dim=-1).numpy()  # (coef, start)
             mask = g.mask.numpy()
             for k, seg in enumerate(segs):
@@ -345,11 +340,7 @@ class Problem:
         """Mean squared data residual (noise units) of each segment in ``which``."""
         errors = []
         sig = torch.as_tensor(self.sigma)
-        for g in self.groups:
-            segs = np.arange(g.first, g.first + g.n_segments)
-            vals, _ = self.integrator_for(fit.system).run(fit.system.coef, fit.starts[segs], g,
-                                                          sensitivities=False,
-                                                          components=self.n_obs)
+        for g, segs, (vals, _) in self.runs(fit.system, fit.starts, False, self.n_obs):
             a = None if self.carry is None else self.carry[g.trajectory]
             resid = whiten((vals - g.observed) / sig * g.mask[..., None], a) ** 2
             per = resid.sum(dim=(1, 2)) / (g.mask.sum(dim=1) * self.n_obs).clamp_min(1)

@@ -11,6 +11,10 @@ between a segment's end and the next segment's start gives the continuity residu
 The least-squares normal equations this gives have an arrow structure (coefficients
 couple everything, each start couples only its own segment and its neighbours); they
 are assembled and solved in :mod:`.normal_equations`.
+
+Every trajectory is a :class:`Group` of segments on one grid; the groups of a panel
+(one per recording) are integrated side by side (:mod:`.batches`), each segment on its
+own group's grid: the arithmetic of integrating group by group, in few calls.
 """
 
 from __future__ import annotations
@@ -73,6 +77,20 @@ def make_groups(times, observed, duration, step, device="cpu"):
                             index, t[0] + seg * np.arange(n_seg)))
         first += n_seg
     return groups
+
+
+@dataclass
+class Batch:
+    """Groups integrated side by side in one call. Each segment keeps its own group's
+    grid; shorter grids are padded with steps of length zero, over which Runge-Kutta
+    leaves a state as it is, so every segment's arithmetic is its group's alone."""
+
+    members: list  # (index in the groups, first row here, segments, sample positions)
+    grid: torch.Tensor  # (K, G) relative grid times of every segment (on the device)
+    positions: torch.Tensor  # (K, M) relative sample times, padded (on the device)
+    lengths: np.ndarray  # (K,) grid points of each segment before the padding
+    hermite: dict = field(default_factory=dict, repr=False, compare=False)
+    steps: dict = field(default_factory=dict, repr=False, compare=False)  # rk4's, per device
 
 
 class Integrator:
@@ -170,7 +188,8 @@ class Integrator:
         return func
 
     @torch.no_grad()
-    def run(self, coef, starts, group: Group, sensitivities=True, components=None):
+    def run(self, coef, starts, group: Group | Batch, sensitivities=True,
+            components=None):
         """States (and sensitivities) at the group's sample times and at segment ends,
         as tensors on the CPU.
 
@@ -202,7 +221,7 @@ class Integrator:
         # overflowing sensitivities become inf silently, as in torch (the states
         # themselves are bounded: BlowUp)
         with np.errstate(over="ignore", invalid="ignore"):
-            z = rk4(func, z0, grid)  # (G, K, ...) on the grid
+            z = rk4(func, z0, grid, getattr(group, "steps", None))  # (G, K, ...)
             dz = func(z)
             z, dz = z.swapaxes(0, 1), dz.swapaxes(0, 1)  # (K, G, ...)
             ends = z[:, -1]
@@ -225,13 +244,25 @@ def _cat(arrays, axis):
     return torch.cat(arrays, axis)
 
 
-def rk4(func, y0, grid):
+def rk4(func, y0, grid, cache=None):
     """Classical Runge-Kutta (the 3/8 rule, torchdiffeq's fixed-grid ``rk4``, the same
     arithmetic) on ``grid``: the states at every grid time, (G, ...), numpy arrays or
     tensors like ``y0``. Written out because the refinement integrates thousands of
     small batches, where the general solver's bookkeeping cost as much as the
-    arithmetic."""
-    steps = np.diff(np.asarray(grid.tolist())).tolist()
+    arithmetic. A grid (K, G) gives each of the K rows of ``y0`` its own steps (a
+    :class:`Batch`; kept in the dict ``cache``, if given, once made)."""
+    if grid.ndim == 1:
+        steps = np.diff(np.asarray(grid.tolist())).tolist()
+    else:
+        key = ("numpy" if isinstance(y0, np.ndarray) else y0.device, y0.ndim)
+        steps = None if cache is None else cache.get(key)
+        if steps is None:
+            shape = (-1, *([1] * (y0.ndim - 1)))
+            steps = [a.reshape(shape) for a in np.diff(np.asarray(grid.tolist()), axis=1).T]
+            if not isinstance(y0, np.ndarray):
+                steps = [torch.as_tensor(a, dtype=y0.dtype, device=y0.device) for a in steps]
+            if cache is not None:
+                cache[key] = steps
     out = [y0]
     y = y0
     for dt in steps:
@@ -247,7 +278,7 @@ def rk4(func, y0, grid):
 _ONE_THIRD = 1 / 3
 
 
-def _hermite(z, dz, group: Group):
+def _hermite(z, dz, group: Group | Batch):
     """Cubic Hermite interpolation of grid values z (K, G, ...) (numpy arrays or
     tensors) at the group's sample positions: (K, M, ...)."""
     key = "numpy" if isinstance(z, np.ndarray) else z.device
@@ -263,17 +294,22 @@ def _hermite(z, dz, group: Group):
     return values.reshape(k, group.positions.shape[1], *rest)
 
 
-def _hermite_table(group: Group, on):
+def _hermite_table(group: Group | Batch, on):
     """Rows of the flattened grid values (segment, grid index) left of each sample, and
     the Hermite weights of the values and slopes at both ends (the slopes' times the
     step), for the group's positions: made once per group (and device)."""
     grid = group.grid.cpu().numpy()
     positions = group.positions.cpu().numpy()
-    h = grid[1] - grid[0]
-    j = np.clip(np.floor(positions / h).astype(np.int64), 0, len(grid) - 2)
-    s = (positions - grid[j]) / h
+    if grid.ndim == 1:
+        h = grid[1] - grid[0]
+        j = np.clip(np.floor(positions / h).astype(np.int64), 0, len(grid) - 2)
+        s = (positions - grid[j]) / h
+    else:  # a batch: each segment's own step, within its own (unpadded) grid
+        h = (grid[:, 1] - grid[:, 0])[:, None]
+        j = np.clip(np.floor(positions / h).astype(np.int64), 0, group.lengths[:, None] - 2)
+        s = (positions - np.take_along_axis(grid, j, axis=1)) / h
     s2, s3 = s * s, s * s * s
-    rows = (np.arange(len(positions))[:, None] * len(grid) + j).ravel()
+    rows = (np.arange(len(positions))[:, None] * grid.shape[-1] + j).ravel()
     weights = [(2 * s3 - 3 * s2 + 1), (s3 - 2 * s2 + s) * h, (-2 * s3 + 3 * s2), (s3 - s2) * h]
     table = [rows] + [w.ravel() for w in weights]
     if on == "numpy":
