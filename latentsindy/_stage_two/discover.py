@@ -275,7 +275,8 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
             if blind and not panel:
                 ctx = context_build.as_measured(ctx, fits[0].library_)
                 proposals = [without_hidden(first.support, ctx)]
-            proposals += every_carrier(ctx, first.support, fuller=refine)
+            proposals += every_carrier(ctx, first.support, fuller=refine,
+                                       others=blind_path.own_laws(ctx, first.support))
     elif hidden_terms is None:
         series = np.stack([np.concatenate([c.term(s, f) for c in coefs]) for s, f in pairs],
                           axis=1)

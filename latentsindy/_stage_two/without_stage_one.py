@@ -91,6 +91,70 @@ def saturated(verdict) -> list[int]:
             if system.free[r].any() and np.all(system.coef[r, cols] != 0)]
 
 
+def own_laws(ctx, support) -> np.ndarray:
+    """The support, with every free equation that has no term given the sparse law with
+    constant coefficients that its increments call for: forward selection on the
+    integral form (each increment between neighbouring samples against the trapezoid
+    integral of every library term, pooled over the recordings) while the extended
+    BIC falls (a term costs log n + log F, the residual variance unknown).
+
+    Without stage one every library term of an equation is tried as a hidden carrier;
+    the other equations need laws of their own, or the carrier's system cannot move the
+    other states. Stage one gives them where it ran; in a panel of short recordings it
+    gives none, and a right carrier then started with its neighbour's law empty (the
+    oscillator's 20 x 11 panels, ``dy/dt = B(t) x`` with ``dx/dt = A y``: 0 exact of
+    10, each a wrong law, flagged). An equation that needs a hidden state of its own
+    gets an approximation here, which matters only for the carriers of other
+    equations; its own carriers start bare, as before."""
+    out = np.array(support, dtype=bool, copy=True)
+    rows = [i for i in range(out.shape[0]) if ctx.free_rows[i] and not out[i].any()]
+    if not rows:
+        return out
+    design, increments = [], []
+    for x, t, th in zip(ctx.observed, ctx.times, ctx.thetas, strict=True):
+        if len(t) < 2:
+            continue
+        step = np.diff(np.asarray(t, float))[:, None]
+        design.append(0.5 * (th[:-1] + th[1:]) * step)
+        increments.append(np.diff(np.asarray(x, float), axis=0))
+    if not design:
+        return out
+    a, b = np.vstack(design), np.vstack(increments)
+    ok = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
+    a, b = a[ok], b[ok]
+    n, n_feat = a.shape
+    if n <= n_feat:
+        return out
+    price = np.log(n) + np.log(n_feat)
+    for i in rows:
+        out[i] = _forward(a, b[:, i], price)
+    return out
+
+
+def _forward(a, y, price) -> np.ndarray:
+    """Terms chosen by forward selection while ``n log(rss / n) + price k`` falls."""
+    n = len(y)
+    chosen: list[int] = []
+    best = n * np.log(max(float(y @ y) / n, 1e-300))
+    while len(chosen) < a.shape[1]:
+        trials = []
+        for f in range(a.shape[1]):
+            if f in chosen:
+                continue
+            cols = a[:, chosen + [f]]
+            coef = np.linalg.lstsq(cols, y, rcond=None)[0]
+            rss = float(np.sum((y - cols @ coef) ** 2))
+            trials.append((n * np.log(max(rss / n, 1e-300)) + price * (len(chosen) + 1), f))
+        crit, f = min(trials)
+        if crit >= best:
+            break
+        best = crit
+        chosen.append(f)
+    mask = np.zeros(a.shape[1], dtype=bool)
+    mask[chosen] = True
+    return mask
+
+
 def doubt(panel: bool, hidden: list[str]) -> Doubt:
     which = ", ".join(f"d{h}/dt" for h in hidden)
     return Doubt("without stage one", f"{which} keeps every term of the closure library: "

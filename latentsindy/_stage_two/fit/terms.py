@@ -56,8 +56,8 @@ def select_terms(problem: Problem, fit: Fit, candidates, max_steps=MAX_STEPS):
     """Improve the set of free coefficients of ``fit.system`` by BIC; ``candidates``
     (bool, like ``system.free``) are the coefficients that may be added. Returns the
     final fit and the moves made: ("drop"/"add", cell, predicted BIC change),
-    ("swap", (out, in), change), ("merge", ((out, out), in), change) or
-    ("exchange", ((out, out), (in, in)), change)."""
+    ("swap", (out, in), change), ("merge", ((out, out), in), change),
+    ("exchange", ((out, out), (in, in)), change) or ("add pair", (in, in), change)."""
     # extended BIC (Chen & Chen 2008, gamma = 1/2): the price of a term grows with the
     # number of terms it was chosen from, so that searching many candidates does not
     # let one of them in by chance
@@ -74,6 +74,9 @@ def select_terms(problem: Problem, fit: Fit, candidates, max_steps=MAX_STEPS):
         if trial is None:  # no single move helps: exchange two terms of an equation
             trial = _first_better(problem, fit, model, model.exchanges(s2), base, s2, price,
                                   tabu)
+        if trial is None:  # nor an exchange: add two terms of an equation together
+            trial = _first_better(problem, fit, model, model.pairs(price, s2), base, s2,
+                                  price, tabu)
         if trial is None:
             break
         fit, move, gain = trial
@@ -346,6 +349,24 @@ class _Quadratic:
             keep[j] = True
             change = (self.predicted(keep) - base) / s2 + price
             out.append((-change, ("add", self.cells[j]), keep))
+        return out
+
+    def pairs(self, price, s2):
+        """(BIC gain, move, keep) for adding every two candidates of one equation
+        together, best first. A law whose terms act only together is reached this way:
+        a logistic rate ``a + b h + c h^2`` (two fixed points) from ``c h^2``, where
+        ``a`` or ``b`` alone moves a fixed point the data do not show."""
+        base = self.predicted(self.current)
+        out = []
+        for row in sorted({cell[0] for cell in self.cells}):
+            outside = [j for j in np.flatnonzero(~self.current) if self.cells[j][0] == row]
+            for b, j in enumerate(outside):
+                for j2 in outside[b + 1:]:
+                    keep = self.current.copy()
+                    keep[[j, j2]] = True
+                    change = (self.predicted(keep) - base) / s2 + 2 * price
+                    out.append((-change, ("add pair", (self.cells[j], self.cells[j2])), keep))
+        out.sort(key=lambda m: -m[0])
         return out
 
     def exchanges(self, s2):

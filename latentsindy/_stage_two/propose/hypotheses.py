@@ -155,7 +155,7 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
     return chosen + list(extra.values())
 
 
-def every_carrier(ctx: Context, support, fuller=True) -> list[Proposal]:
+def every_carrier(ctx: Context, support, fuller=True, others=None) -> list[Proposal]:
     """Proposals without stage one's variation: in every free equation, each library
     term as the carrier of one hidden state (the equation's other terms as in
     ``support``), the hidden series from the smoother in integral form (no derivative
@@ -167,13 +167,16 @@ def every_carrier(ctx: Context, support, fuller=True) -> list[Proposal]:
     closure score on a few samples per recording ranks them only roughly: in a panel
     of 20 x 11 prey-only LV samples ``x^2`` ranked above the exact carrier ``x``, and
     its system could not be integrated), and (``fuller``) each with its fuller
-    closure."""
+    closure. ``others`` (like ``support``): the terms of the equations other than the
+    carrier's (default ``support``)."""
     n_obs, n_feat = support.shape
     chosen = {}
     for i in range(n_obs):
         if not ctx.free_rows[i]:
             continue
-        carriers = _usable([evaluate(single_term(n_obs, n_feat, i, k, support), ctx,
+        rest = np.array(support if others is None else others, dtype=bool, copy=True)
+        rest[i] = support[i]
+        carriers = _usable([evaluate(single_term(n_obs, n_feat, i, k, rest), ctx,
                                      "carrier") for k in range(n_feat)])
         if not carriers:
             continue
