@@ -33,7 +33,7 @@ from . import without_stage_one as blind_path
 from .assemble import from_proposals, from_verdicts
 from .fit.refine import RefineOptions
 from .judge import judge_all
-from .propose.hypotheses import every_carrier, propose
+from .propose.hypotheses import propose
 from .propose.proposal import evaluate, without_hidden
 from .propose.smoother import Structure
 from .result import HiddenDiscovery
@@ -275,8 +275,7 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
             if blind and not panel:
                 ctx = context_build.as_measured(ctx, fits[0].library_)
                 proposals = [without_hidden(first.support, ctx)]
-            proposals += every_carrier(ctx, first.support, fuller=refine,
-                                       others=blind_path.own_laws(ctx, first.support))
+            proposals += blind_path.carriers(ctx, first.support, fuller=refine)
     elif hidden_terms is None:
         series = np.stack([np.concatenate([c.term(s, f) for c in coefs]) for s, f in pairs],
                           axis=1)
