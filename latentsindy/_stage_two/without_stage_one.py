@@ -103,8 +103,10 @@ def carriers(ctx, support, fuller=True) -> list:
     takes terms out, but only of a system that was fitted."""
     laws = own_laws(ctx, support)
     out = every_carrier(ctx, support, fuller=fuller, others=laws)
+    if support.shape[0] < 2:  # no other equation: the laws change nothing
+        return out
     sparsest = own_laws(ctx, support, max_terms=1)
-    if support.shape[0] > 1 and not np.array_equal(sparsest, laws):
+    if not np.array_equal(sparsest, laws):
         seen = {(p.structure.key(), p.order) for p in out}
         for p in every_carrier(ctx, support, fuller=fuller, others=sparsest):
             if (p.structure.key(), p.order) not in seen:
@@ -149,7 +151,7 @@ def own_laws(ctx, support, max_terms=None) -> np.ndarray:
         return out
     price = np.log(n) + np.log(n_feat)
     for i in rows:
-        out[i] = _forward(a, b[:, i], price, max_terms or n_feat)
+        out[i] = _forward(a, b[:, i], price, max_terms)
     return out
 
 
