@@ -59,7 +59,9 @@ class Alternative:
     ``score`` is its held-out score when ``status`` is "scored"; for "rejected" (misfit
     far above the best), "blew up" and "does not join" (a hidden state jumps between
     integration segments, so the fit is no trajectory of the system) it is the in-sample
-    misfit (noise variances); for "not refined" (``refine=False``) it is NaN.
+    misfit (noise variances); for "not refined" (``refine=False``) it is NaN. ``size``:
+    its parameters, free coefficients plus hidden initial values (one set per
+    recording), the count ranking weighs.
     """
 
     description: str

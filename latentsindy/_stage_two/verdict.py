@@ -61,8 +61,9 @@ class Verdict:
 
     @property
     def size(self) -> int:
-        """Free coefficients plus hidden initial values."""
-        return self.system.n_free + (len(self.system.state_names) - self.system.n_observed)
+        """Free coefficients plus hidden initial values, one set per recording."""
+        hidden = len(self.system.state_names) - self.system.n_observed
+        return self.system.n_free + hidden * max(len(self.problem.groups), 1)
 
 
 def closure_state_names(p: Proposal, observed, hidden) -> list[str]:

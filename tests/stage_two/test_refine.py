@@ -32,7 +32,7 @@ from latentsindy._stage_two.fit.terms import (
 )
 from latentsindy._stage_two.judge import paired_evidence, rank
 from latentsindy._stage_two.result_parts import Refinement, Term
-from latentsindy._stage_two.verdict import Trial, finish
+from latentsindy._stage_two.verdict import Trial, Verdict, finish
 
 X, Y, Z, H = sp.symbols("x y z h", real=True)
 A, B, G, D = 1.0, 0.1, 1.5, 0.075
@@ -540,6 +540,27 @@ def test_paired_evidence_reads_differences_on_the_same_segments():
     assert not paired_evidence(few, _verdict(0.0, 0.0, 5, 1, errors=d))
     assert paired_evidence(few, _verdict(0.0, 0.0, 5, 1)) is False  # unpaired: no evidence
     assert paired_evidence(few, _verdict(0.0, 0.0, 5, 1), unpaired=True)
+
+
+def test_hidden_initial_values_count_once_per_recording():
+    """A hidden state adds one initial value per recording to a system's size: over 4
+    recordings, a law in one hidden state with 4 coefficients (8 parameters) is smaller
+    than one in two hidden states with 3 (11), and ranking prefers it at the same
+    score; over one recording the second (5 against 5) would tie on size."""
+    def verdict(n_hidden, n_free, recordings, pivot):
+        names = ("x",) + tuple(f"h{a}" for a in range(n_hidden))
+        system = SimpleNamespace(state_names=names, n_observed=1, n_free=n_free,
+                                 coef=np.zeros((len(names), 3)),
+                                 free=np.eye(len(names), 3, dtype=bool))
+        proposal = SimpleNamespace(structure=SimpleNamespace(pivots=(pivot,)), order=1,
+                                   nested=())
+        return Verdict(proposal, SimpleNamespace(system=system),
+                       SimpleNamespace(groups=[None] * recordings), 1.0, 0.05, (), 1.0,
+                       errors=np.ones(8))
+    one, two = verdict(1, 4, 4, (0, 0)), verdict(2, 3, 4, (0, 1))
+    assert (one.size, two.size) == (8, 11)
+    assert verdict(1, 4, 1, (0, 0)).size == verdict(2, 3, 1, (0, 1)).size == 5
+    assert rank([two, one])[0][0] is one
 
 
 def test_a_larger_alternative_vetoes_confidence_only_when_favoured():

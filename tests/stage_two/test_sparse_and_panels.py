@@ -321,3 +321,50 @@ def test_an_oscillator_panel_gets_its_exact_law(draw):
     for k, v in truth.items():
         assert float(law[k]) == pytest.approx(v, rel=0.1)
     assert result.confident
+
+
+def _short_oscillator_recordings():
+    """``conditions.py``'s oscillator (B logistic in time, hidden) at 5% noise as four
+    short recordings cut from one run, draw 2, sample for sample. Returns (recordings,
+    times, (low, high, rate))."""
+    a, low, high, at, rate = (-4.518920382116299, 1.8960863805262678, 3.06678903447779,
+                              6.101919387285499, 1.3617123673767453)
+    data = systems.harmonic_oscillator(
+        A=a, B=systems.Sigmoid(low, high, at=at, sharpness=rate), t_end=10.0, n_times=2000,
+        x0=(-0.8260953228373363, -0.563530405201243), noise=0.05, seed=1002)
+    rng = np.random.default_rng([5, 2, 77])
+    n_rec = int(rng.integers(3, 6))
+    lengths, strides = rng.integers(200, 401, n_rec), rng.integers(1, 4, n_rec)
+    while np.sum(lengths * strides) > 2000:
+        strides[np.argmax(strides)] -= 1
+    slack = 2000 - int(np.sum(lengths * strides))
+    spaces = np.diff(np.sort(rng.integers(0, slack + 1, n_rec)), prepend=0)
+    xs, ts, start = [], [], 0
+    for length, stride, space in zip(lengths, strides, spaces, strict=True):
+        rows = start + int(space) + stride * np.arange(length)
+        xs.append(data.x[rows])
+        ts.append(data.t[rows])
+        start = int(rows[-1]) + 1
+    return xs, ts, (low, high, rate)
+
+
+def test_a_hidden_state_costs_an_initial_value_in_every_recording():
+    """Four short recordings of the oscillator: B's rate as a second hidden state (one
+    coefficient, ``dB/dt = r``, ``dr/dt = c r B``) fits as well as the logistic law (three)
+    because each recording gets its own initial rate, a constant of its own. Counted
+    once, the rate system was the smaller and won, and its first integral with one
+    shared constant (``dB/dt = c B^2``) was reported, confident: wrong (held-out 1.15
+    against 1.00). Counted once per recording, the second state's initial values make it
+    the larger: the logistic law, confident."""
+    xs, ts, (lo, hi, r) = _short_oscillator_recordings()
+    assert [len(x) for x in xs] == [257, 391, 270, 347]
+    result = discover_hidden(xs, ps.PolynomialLibrary(degree=2), t=ts,
+                             feature_names=["x", "y"], hidden_names=["h"], verbose=False)
+    assert result.hidden_names == ("h",) and sp.expand(result.rhs["y"] - H * X) == 0
+    truth = {(0,): -r * lo * hi / (hi - lo), (1,): r * (lo + hi) / (hi - lo),
+             (2,): -r / (hi - lo)}
+    law = sp.Poly(sp.expand(result.rhs["h"]), H).as_dict()
+    assert set(law) == set(truth)
+    for k, v in truth.items():
+        assert float(law[k]) == pytest.approx(v, rel=0.15)
+    assert result.confident

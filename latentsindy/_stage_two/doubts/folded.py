@@ -47,7 +47,7 @@ class Folded:
     score: float  # held-out misfit, noise variances
     score_se: float
     degree: int
-    size: int  # free coefficients plus hidden initial values
+    size: int  # free coefficients plus the hidden initial value of each recording
     system: ParametricSystem
 
 
@@ -106,7 +106,7 @@ def folded_score(verdict, closure_library) -> Folded | None:
         return None
     if not np.isfinite(score):
         return None
-    return Folded(score, score_se, degree, fit.system.n_free + 1, fit.system)
+    return Folded(score, score_se, degree, fit.system.n_free + len(problem.groups), fit.system)
 
 
 def _rate_law(system, trajectories, features, kept):
