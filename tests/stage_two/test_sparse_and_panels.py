@@ -313,14 +313,19 @@ def test_an_oscillator_panel_gets_its_exact_law(draw):
     assert float(sp.Poly(result.rhs["x"], X, y).as_dict()[(0, 1)]) == pytest.approx(
         a, rel=0.1)
     assert sp.expand(result.rhs["y"] - H * X) == 0
-    # dB/dt = r (B - lo)(hi - B) / (hi - lo): a quadratic in B with these coefficients
+    _assert_logistic_law(result, lo, hi, r, rel=0.1)
+    assert result.confident
+
+
+def _assert_logistic_law(result, lo, hi, r, rel):
+    """dh/dt = r (h - lo)(hi - h) / (hi - lo): a quadratic in h with these coefficients,
+    each within ``rel``, and no other term."""
     truth = {(0,): -r * lo * hi / (hi - lo), (1,): r * (lo + hi) / (hi - lo),
              (2,): -r / (hi - lo)}
     law = sp.Poly(sp.expand(result.rhs["h"]), H).as_dict()
     assert set(law) == set(truth)
     for k, v in truth.items():
-        assert float(law[k]) == pytest.approx(v, rel=0.1)
-    assert result.confident
+        assert float(law[k]) == pytest.approx(v, rel=rel)
 
 
 def _short_oscillator_recordings():
@@ -361,10 +366,5 @@ def test_a_hidden_state_costs_an_initial_value_in_every_recording():
     result = discover_hidden(xs, ps.PolynomialLibrary(degree=2), t=ts,
                              feature_names=["x", "y"], hidden_names=["h"], verbose=False)
     assert result.hidden_names == ("h",) and sp.expand(result.rhs["y"] - H * X) == 0
-    truth = {(0,): -r * lo * hi / (hi - lo), (1,): r * (lo + hi) / (hi - lo),
-             (2,): -r / (hi - lo)}
-    law = sp.Poly(sp.expand(result.rhs["h"]), H).as_dict()
-    assert set(law) == set(truth)
-    for k, v in truth.items():
-        assert float(law[k]) == pytest.approx(v, rel=0.15)
+    _assert_logistic_law(result, lo, hi, r, rel=0.15)
     assert result.confident
