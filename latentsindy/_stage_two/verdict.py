@@ -62,8 +62,7 @@ class Verdict:
     @property
     def size(self) -> int:
         """Free coefficients plus hidden initial values, one set per recording."""
-        hidden = len(self.system.state_names) - self.system.n_observed
-        return self.system.n_free + hidden * max(len(self.problem.groups), 1)
+        return self.system.n_parameters(len(self.problem.groups))
 
 
 def closure_state_names(p: Proposal, observed, hidden) -> list[str]:

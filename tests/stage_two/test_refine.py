@@ -549,9 +549,9 @@ def test_hidden_initial_values_count_once_per_recording():
     score; over one recording the second (5 against 5) would tie on size."""
     def verdict(n_hidden, n_free, recordings, pivot):
         names = ("x",) + tuple(f"h{a}" for a in range(n_hidden))
-        system = SimpleNamespace(state_names=names, n_observed=1, n_free=n_free,
-                                 coef=np.zeros((len(names), 3)),
-                                 free=np.eye(len(names), 3, dtype=bool))
+        free = np.zeros((len(names), 3), dtype=bool)
+        free.flat[:n_free] = True
+        system = ParametricSystem(names, 1, ("1", "x", "h0"), np.zeros(free.shape), free)
         proposal = SimpleNamespace(structure=SimpleNamespace(pivots=(pivot,)), order=1,
                                    nested=())
         return Verdict(proposal, SimpleNamespace(system=system),

@@ -106,7 +106,8 @@ def folded_score(verdict, closure_library) -> Folded | None:
         return None
     if not np.isfinite(score):
         return None
-    return Folded(score, score_se, degree, fit.system.n_free + len(problem.groups), fit.system)
+    return Folded(score, score_se, degree, fit.system.n_parameters(len(problem.groups)),
+                  fit.system)
 
 
 def _rate_law(system, trajectories, features, kept):

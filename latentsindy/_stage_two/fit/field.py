@@ -49,6 +49,11 @@ class ParametricSystem:
     def n_free(self) -> int:
         return int(self.free.sum())
 
+    def n_parameters(self, recordings: int = 1) -> int:
+        """Free coefficients plus the hidden initial values, one set per recording
+        (each recording's hidden states start where its data put them)."""
+        return self.n_free + (len(self.state_names) - self.n_observed) * max(recordings, 1)
+
     @property
     def n_terms(self) -> int:
         return int(((self.coef != 0) | self.free).sum())
