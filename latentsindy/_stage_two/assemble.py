@@ -31,6 +31,7 @@ from .doubts.terms import (
     weakly_supported_terms,
 )
 from .fit.expected_score import REPLICATES, expected_score
+from .fit.held_out import by_recording
 from .judge import build
 from .propose.nested import monomial_name
 from .result import HiddenDiscovery
@@ -177,7 +178,9 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
         hidden, [np.asarray(h) for h in best.proposal.hidden], trajectories[0][0].copy(),
         doubts(score, score_se, refinement, terms, names,
                None if best.scored else best.history[0], expected)
-        + weak_check_doubts(expected, unaided, best.scored and np.isfinite(score))
+        + weak_check_doubts(expected, unaided, best.scored and np.isfinite(score),
+                            (len(problem.groups), score_se) if by_recording(problem)
+                            else None)
         + segment_constant_doubts(terms, names, system.n_observed, trajectories, stds)
         + first_integral_doubt(best, names)
         + exchange_doubts(exchangeable, system, rename, names_map)

@@ -20,8 +20,9 @@ from .._core.parallel import map_on, shared_values
 from .._core.timing import stage
 from .context import Context
 from .fit.field import ParametricSystem
+from .fit.held_out import cross_validate
 from .fit.least_squares import GiveUpWatch
-from .fit.refine import Fit, Problem, cross_validate
+from .fit.refine import Fit, Problem
 from .fit.shooting import BlowUp
 from .fit.terms import select_terms
 from .propose.nested import nested_system

@@ -12,9 +12,15 @@ from test_refine import TRUTH_ROW, lv_problem, lv_system
 
 from latentsindy import systems
 from latentsindy._stage_two import without_stage_one as blind_path
-from latentsindy._stage_two.doubts.checks import FAR, REPRODUCTION_SLACK, reproduces
+from latentsindy._stage_two.doubts.checks import (
+    FAR,
+    REPRODUCTION_SLACK,
+    reproduces,
+    weak_check_doubts,
+)
 from latentsindy._stage_two.fit.expected_score import _noise, _with_data, expected_score
-from latentsindy._stage_two.fit.refine import Problem, cross_validate
+from latentsindy._stage_two.fit.held_out import SHORT_RECORDING, by_recording, cross_validate
+from latentsindy._stage_two.fit.refine import Problem
 
 A, B, G, D = 1.0, 0.1, 1.5, 0.075
 
@@ -40,16 +46,21 @@ def test_a_right_system_on_dense_data_is_expected_to_score_about_one():
     assert expected_score(problem, problem.fit()) == pytest.approx(1.0, abs=0.25)
 
 
-def test_short_recordings_raise_the_reference_and_a_right_law_meets_it():
-    """A panel of 12 recordings of 11 samples: the held-out segments' starts rest on a
-    few noisy samples, so a right law scores above 1; the reference says by how much,
-    and the right law's real score is read against it (a missing term still fails)."""
+def test_a_panel_is_held_out_by_recording_and_a_right_law_is_expected_near_one():
+    """A panel of 12 recordings of 11 samples is held out recording by recording: each
+    fold refits the law without its recordings, then only their initial values. A
+    right law's misfit per degree of freedom is then the noise, so its reference is
+    about 1 (held out by segments, each bridged from a neighbour of a few noisy
+    samples, it was 5-20 and the check had no power); the right law meets it and a
+    law without its x h term does not."""
     t, x, guesses = _panel(12)
     right = Problem(lv_system(TRUTH_ROW), t, x, guesses)
+    assert by_recording(right)
     fit = right.fit()
     reference = expected_score(right, fit)
-    score, se, _ = cross_validate(right, fit)
-    assert reference > 1.0
+    score, se, errors = cross_validate(right, fit)
+    assert len(errors) == 12  # one error per recording
+    assert reference == pytest.approx(1.0, abs=0.3)
     assert reproduces(score, se, reference)
     wrong_row = TRUTH_ROW.copy()
     wrong_row[0] = 0.0  # without x h the law cannot follow the cycle
@@ -57,6 +68,34 @@ def test_short_recordings_raise_the_reference_and_a_right_law_meets_it():
     wrong_fit = wrong.fit()
     wrong_score, wrong_se, _ = cross_validate(wrong, wrong_fit)
     assert not reproduces(wrong_score, wrong_se, expected_score(wrong, wrong_fit))
+
+
+def test_a_recording_held_out_is_fitted_only_in_its_initial_values():
+    """The true law with every coefficient fixed, and one recording of the panel
+    replaced by a steady rise over the prey's range (no orbit of the law rises for
+    most of a cycle): started wherever that recording's samples put it best, the law
+    cannot follow it, so its error alone is far above the others' (the noise)."""
+    t, x, guesses = _panel(12)
+    low, high = float(np.min(np.vstack(x))), float(np.max(np.vstack(x)))
+    x[5] = np.linspace(low, high, len(t[5]))[:, None]
+    fixed = lv_system(TRUTH_ROW, np.zeros(5, dtype=bool))
+    problem = Problem(fixed, t, x, guesses)
+    _, _, errors = cross_validate(problem, problem.fit())
+    others = np.delete(errors, 5)
+    assert np.all(others < 3.0) and errors[5] > 30 * np.median(others)
+
+
+def test_only_panels_of_short_recordings_are_held_out_by_recording():
+    """Whole recordings are the held-out units only where there are at least as many
+    as folds and none is longer than SHORT_RECORDING segments: one long recording, or
+    three short ones, keep segments bridged by their neighbours."""
+    t, x, guesses = _panel(12)
+    assert by_recording(Problem(lv_system(TRUTH_ROW), t, x, guesses))
+    assert not by_recording(Problem(lv_system(TRUTH_ROW), t[:3], x[:3], guesses[:3]))
+    data, long_guesses = lv_problem(0.01)
+    one = Problem(lv_system(TRUTH_ROW), [data.t], [data.x[:, :1]], long_guesses)
+    assert max(g.n_segments for g in one.groups) > SHORT_RECORDING
+    assert not by_recording(one)
 
 
 def test_the_reference_is_the_same_for_the_same_data():
@@ -147,3 +186,16 @@ def test_the_reference_leaves_the_problem_it_was_simulated_from_unchanged():
     assert all(torch.equal(a.observed, b.observed) for a, b in zip(same.groups,
                                                                    problem.groups,
                                                                    strict=True))
+
+
+def test_a_check_on_few_recordings_is_weak_when_its_score_is_uncertain():
+    """Held out by whole recordings, a score whose two standard errors exceed one noise
+    variance could pass a law that misses every sample by a noise variance: indomethacin's
+    six subjects (+-0.87) are flagged, panels of 10-20 recordings (+-0.03-0.26) are not;
+    an unscored system and a segment-wise check are not judged this way."""
+    (doubt,) = weak_check_doubts(1.05, "no recording is long enough", True, (6, 0.87))
+    assert doubt.kind == "weak check"
+    assert "6 leave its score uncertain by +-0.87 noise variances" in doubt
+    assert weak_check_doubts(1.05, "no recording is long enough", True, (20, 0.26)) == ()
+    assert weak_check_doubts(1.05, None, False, (6, 0.87)) == ()
+    assert weak_check_doubts(1.05, None, True, None) == ()

@@ -12,7 +12,8 @@ from scipy.integrate import solve_ivp
 
 from latentsindy._stage_two.doubts.folded import Folded, folded_doubts, folded_score
 from latentsindy._stage_two.fit.field import ParametricSystem
-from latentsindy._stage_two.fit.refine import Problem, cross_validate
+from latentsindy._stage_two.fit.held_out import cross_validate
+from latentsindy._stage_two.fit.refine import Problem
 
 X, H0, H1 = sp.symbols("x h0 h1", real=True)
 MU = 1.0

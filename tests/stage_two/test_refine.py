@@ -19,9 +19,10 @@ from latentsindy._stage_two.doubts.checks import doubts, segment_constant_doubts
 from latentsindy._stage_two.doubts.terms import missing_doubts, weak_doubts
 from latentsindy._stage_two.fit import terms as terms_module
 from latentsindy._stage_two.fit.field import FeatureMap, ParametricSystem
+from latentsindy._stage_two.fit.held_out import cross_validate
 from latentsindy._stage_two.fit.least_squares import GiveUpWatch
 from latentsindy._stage_two.fit.normal_equations import DENSE, NormalEquations, as_array, solve
-from latentsindy._stage_two.fit.refine import JOIN, Fit, Problem, cross_validate
+from latentsindy._stage_two.fit.refine import JOIN, Fit, Problem
 from latentsindy._stage_two.fit.shooting import BlowUp
 from latentsindy._stage_two.fit.terms import (
     AMBIGUITY,

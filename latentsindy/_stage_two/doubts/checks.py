@@ -27,6 +27,10 @@ FAR = 3.0
 # 11.3 +- 3.7 against a reference of 7.5).
 POWER = 3.0
 SIGNIFICANCE = 2.0  # a kept coefficient should be this many standard errors from zero
+# Held out by whole recordings, a check whose two standard errors exceed this many noise
+# variances could not tell a law that misses every sample by a noise variance from a
+# right one (indomethacin's 6 subjects: +-0.87; panels of 10-20 recordings: 0.03-0.26).
+RESOLUTION = 1.0
 
 
 def reproduces(score, score_se, expected=1.0) -> bool:
@@ -79,12 +83,21 @@ def doubts(score, score_se, refinement, terms, hidden, unscored=None, expected=N
     return tuple(found)
 
 
-def weak_check_doubts(expected, unaided=None, scored=True):
+def weak_check_doubts(expected, unaided=None, scored=True, recordings=None):
     """The ``weak check`` doubt when the held-out check has little power on these data
     (a right system's simulated score ``expected`` above ``POWER``), or, for a law found
     without stage one (``unaided`` says why: then the check is the only one that could
     see a wrong carrier's approximation), when its power could not be measured (a
-    scored system that could not be simulated and refitted)."""
+    scored system that could not be simulated and refitted). ``recordings``: (count,
+    standard error of the score) where whole recordings were held out; the check is
+    weak when two standard errors exceed ``RESOLUTION``."""
+    if (recordings is not None and scored and np.isfinite(recordings[1])
+            and SIGNIFICANCE * recordings[1] > RESOLUTION):
+        count, se = recordings
+        return (Doubt("weak check", f"the held-out check left out whole recordings, and "
+                      f"{count} leave its score uncertain by +-{se:.2g} noise variances: a "
+                      "law that misses the data by a noise variance could pass it. Confirm "
+                      "it with more recordings."),)
     if expected is None and not (unaided and scored):
         return ()
     if expected is not None and expected <= POWER:

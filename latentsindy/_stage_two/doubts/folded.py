@@ -36,7 +36,8 @@ import sympy as sp
 from ..._core.doubt import Doubt
 from ..context import TIE
 from ..fit.field import ParametricSystem
-from ..fit.refine import Problem, cross_validate
+from ..fit.held_out import cross_validate
+from ..fit.refine import Problem
 from ..fit.shooting import BlowUp
 
 

@@ -2,10 +2,12 @@
 
 A held-out segment is predicted from a start that its neighbours pin down, so a right
 system scores about 1 noise variance there: the noise, and little else. Where the
-segments are few and short (the short recordings of a panel, a few samples per
-cycle), the start is pinned by a handful of noisy samples and the prediction carries
-its uncertainty too: an exact law then scores several noise variances (epidemic
-panels of 11 samples: 5-19), and "expected ~1" would call a right law wrong.
+segments are few and short (a few samples per cycle), the start is pinned by a
+handful of noisy samples and the prediction carries its uncertainty too: an exact law
+then scores several noise variances (a dozen samples per epidemic wave: up to
+hundreds), and "expected ~1" would call a right law wrong. (A panel of short
+recordings is held out by recording, :func:`.held_out.by_recording`: there the
+reference is about 1.)
 
 :func:`expected_score` measures that reference for the chosen system by a parametric
 bootstrap: data simulated from the fitted system at the recording's own times (its
@@ -28,7 +30,8 @@ import torch
 from ..._core.budget import expired
 from ..._core.local_fits import is_uniform
 from ..._core.noise_shape import level_profile
-from .refine import Fit, Problem, cross_validate
+from .held_out import cross_validate
+from .refine import Fit, Problem
 from .shooting import BlowUp
 
 REPLICATES = 4  # simulated data sets; the reference is their mean score

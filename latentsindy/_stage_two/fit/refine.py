@@ -12,10 +12,7 @@ then jump between segments by its whole variation while the gaps read small:
 :meth:`Problem.joins` measures such jumps in the state's own spread, and a fit that
 does not join is no trajectory of its system.
 
-Held-out scoring (:func:`cross_validate`): segments are held out in interleaved folds
-(every ``n_folds``-th segment); with their data removed, a held-out segment is still
-bridged by integration from its neighbours (continuity), so its misfit measures how
-well the fitted system reproduces data it was not fitted to, for chaotic systems too.
+Held-out scoring: :mod:`.held_out`.
 """
 
 from __future__ import annotations
@@ -29,14 +26,12 @@ import torch
 from ..._core.coloured import with_ar1
 from ..._core.derivatives import measurement_noise
 from ..._core.oscillation import crossing_periods
-from ..._core.parallel import map_on
-from ..._core.timing import timed
 from ..context import NOISE_FLOOR
 from .batches import make_batches, run_groups
 from .field import ParametricSystem
 from .least_squares import RESOLUTION, GiveUpWatch, covariance, levenberg_marquardt
 from .normal_equations import NormalEquations, as_array
-from .shooting import BlowUp, Integrator, make_groups, stable_step
+from .shooting import Integrator, make_groups, stable_step
 from .whiten import carry_over, whiten
 
 _GAP = 1e-2  # continuity gaps are held below this fraction of the noise level
@@ -347,34 +342,21 @@ class Problem:
             errors += [float(per[k]) for k, s in enumerate(segs) if which[s]]
         return np.array(errors)
 
-
-@timed("held-out score")
-def cross_validate(problem: Problem, fit: Fit, max_iterations=10):
-    """Held-out misfit by interleaved folds of segments: (mean, standard error, per
-    segment errors). Each fold starts from ``fit`` and is refitted without its data
-    (independently: on a CPU a second core takes some of the folds, the same errors)."""
-    folds = problem.options.n_folds
-    fold_of = np.concatenate([np.arange(g.n_segments) % folds for g in problem.groups])
-    helds = [fold_of == f for f in range(folds)]
-    helds = [held for held in helds if held.any() and not held.all()]
-
-    def fold(held):
-        try:
-            # converged fully (no resolution): the fold starts from the fit that saw
-            # its held-out data, and stopping early would leave it nearer that fit,
-            # scoring optimistically (a runner-up on prey-only LV scored 0.984
-            # instead of 1.01, inside the winner's band)
-            part = problem.fit(fit.system, fit.starts.copy(), (~held).astype(float),
-                               max_iterations, penalties=(fit.rho,), resolution=0.0)
-            return problem.segment_errors(part, held)
-        except BlowUp:
-            return np.full(int(held.sum()), np.inf)
-
-    errors = map_on(problem.options.device, fold, helds)
-    errors = np.concatenate(errors) if errors else np.array([np.inf])
-    if not np.all(np.isfinite(errors)):
-        return np.inf, np.inf, errors
-    return float(errors.mean()), float(errors.std(ddof=1) / np.sqrt(len(errors))), errors
+    def recording_errors(self, fit: Fit, which):
+        """Misfit per degree of freedom (noise variances) of every recording whose
+        segments are all in ``which``: squared data residuals over samples times
+        observed states less the recording's initial values (one per state)."""
+        errors = []
+        sig = torch.as_tensor(self.sigma)
+        n_states = fit.starts.shape[1]
+        for g, segs, (vals, _) in self.runs(fit.system, fit.starts, False, self.n_obs):
+            if not all(which[segs]):
+                continue
+            a = None if self.carry is None else self.carry[g.trajectory]
+            resid = whiten((vals - g.observed) / sig * g.mask[..., None], a) ** 2
+            dof = max(int(g.mask.sum()) * self.n_obs - n_states, 1)
+            errors.append(float(resid.sum()) / dof)
+        return np.array(errors)
 
 
 def _dominant_period(observed, times):
