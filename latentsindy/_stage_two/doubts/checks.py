@@ -30,7 +30,7 @@ SIGNIFICANCE = 2.0  # a kept coefficient should be this many standard errors fro
 # Held out by whole recordings, a check whose two standard errors exceed this many noise
 # variances could not tell a law that misses every sample by a noise variance from a
 # right one (indomethacin's 6 subjects: +-0.87; panels of 10-20 recordings: 0.03-0.26).
-RESOLUTION = 1.0
+SCORE_RESOLUTION = 1.0
 
 
 def reproduces(score, score_se, expected=1.0) -> bool:
@@ -90,9 +90,9 @@ def weak_check_doubts(expected, unaided=None, scored=True, recordings=None):
     see a wrong carrier's approximation), when its power could not be measured (a
     scored system that could not be simulated and refitted). ``recordings``: (count,
     standard error of the score) where whole recordings were held out; the check is
-    weak when two standard errors exceed ``RESOLUTION``."""
+    weak when two standard errors exceed ``SCORE_RESOLUTION``."""
     if (recordings is not None and scored and np.isfinite(recordings[1])
-            and SIGNIFICANCE * recordings[1] > RESOLUTION):
+            and SIGNIFICANCE * recordings[1] > SCORE_RESOLUTION):
         count, se = recordings
         return (Doubt("weak check", f"the held-out check left out whole recordings, and "
                       f"{count} leave its score uncertain by +-{se:.2g} noise variances: a "
