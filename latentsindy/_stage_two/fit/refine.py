@@ -334,10 +334,7 @@ class Problem:
     def segment_errors(self, fit: Fit, which):
         """Mean squared data residual (noise units) of each segment in ``which``."""
         errors = []
-        sig = torch.as_tensor(self.sigma)
-        for g, segs, (vals, _) in self.runs(fit.system, fit.starts, False, self.n_obs):
-            a = None if self.carry is None else self.carry[g.trajectory]
-            resid = whiten((vals - g.observed) / sig * g.mask[..., None], a) ** 2
+        for g, segs, resid in self._squared_residuals(fit):
             per = resid.sum(dim=(1, 2)) / (g.mask.sum(dim=1) * self.n_obs).clamp_min(1)
             errors += [float(per[k]) for k, s in enumerate(segs) if which[s]]
         return np.array(errors)
@@ -346,17 +343,18 @@ class Problem:
         """Misfit per degree of freedom (noise variances) of every recording whose
         segments are all in ``which``: squared data residuals over samples times
         observed states less the recording's initial values (one per state)."""
-        errors = []
-        sig = torch.as_tensor(self.sigma)
         n_states = fit.starts.shape[1]
+        return np.array([float(resid.sum()) / max(int(g.mask.sum()) * self.n_obs - n_states, 1)
+                         for g, segs, resid in self._squared_residuals(fit)
+                         if all(which[segs])])
+
+    def _squared_residuals(self, fit: Fit):
+        """``(group, its segments, squared whitened data residuals)`` for every group:
+        observed states in noise units, padding zero."""
+        sig = torch.as_tensor(self.sigma)
         for g, segs, (vals, _) in self.runs(fit.system, fit.starts, False, self.n_obs):
-            if not all(which[segs]):
-                continue
             a = None if self.carry is None else self.carry[g.trajectory]
-            resid = whiten((vals - g.observed) / sig * g.mask[..., None], a) ** 2
-            dof = max(int(g.mask.sum()) * self.n_obs - n_states, 1)
-            errors.append(float(resid.sum()) / dof)
-        return np.array(errors)
+            yield g, segs, whiten((vals - g.observed) / sig * g.mask[..., None], a) ** 2
 
 
 def _dominant_period(observed, times):
