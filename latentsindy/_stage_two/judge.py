@@ -55,7 +55,8 @@ BLIND_CONTEND = 4.0
 
 
 def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
-              max_hidden: int = 3, nested: bool = False, blind: bool = False):
+              max_hidden: int = 3, nested: bool = False, blind: bool = False,
+              settled: bool = False):
     """Judge the proposals: refine each; when none reproduces the data to about its
     noise level, also refine the best single-hidden-state proposals with the hidden
     state's rate as a second state; then select terms stepwise and score on held-out
@@ -64,7 +65,9 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     data by more than ``NESTED_TRIGGER`` noise variances, also
     the best single-hidden-state proposals with a hidden state inside the hidden
     equation (:mod:`.nested`). ``blind``: the proposals were made without stage one
-    (``BLIND_CONTEND``). Returns ``rank``'s result."""
+    (``BLIND_CONTEND``). When the best selected system's misfit shows the noise lower
+    than the level judged in, everything is judged again in the lower level, once
+    (``settled``: it was). Returns ``rank``'s result."""
     options = options or RefineOptions()
     progress(f"stage two: {len(proposals)} hypotheses to fit")
     # each refined in order, given up against the best before it (on a CPU two at a
@@ -74,7 +77,7 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     noise = _noise_from_fit(trials, best) if options.noise is None else None
     if noise is not None and not spent("the judgement in the noise level of the best fit"):
         return judge_all(proposals, ctx, replace(options, noise=noise), max_hidden, nested,
-                         blind)
+                         blind, settled)
     if best > RATE_TRIGGER and max_hidden >= 2 and not spent("hidden states' rates"):
         progress("no first-order law reproduces the data: hidden states' rates")
         trials += first_fits(_rate_candidates(proposals, ctx), ctx, options, trials)
@@ -102,6 +105,18 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
                            cost=[t.fit.system.n_free for t in finishing]))
     verdicts = [finished(t, next(outcomes)) if c else unscored(t, "rejected")
                 for t, c in zip(trials, contending, strict=True)]
+    scored = [v for v in verdicts if v.scored]
+    final = min((v.fit.residual_variance for v in scored), default=np.inf)
+    if not settled and final < RESCALE:
+        # a selected system reproduces the data well below the level its first fit
+        # implied (a first fit made without stage one, or with terms that selection
+        # removed, is rough): the noise is lower still, and scores in the higher unit
+        # would pass a law that misses the data by several noise variances
+        noise = _noise_from_fit(scored, final)
+        if noise is not None and not spent("the judgement in the noise level of the best "
+                                           "selected fit"):
+            return judge_all(proposals, ctx, replace(options, noise=noise), max_hidden,
+                             nested, blind, settled=True)
     left = sum(v.history[:1] == ("not judged",) for v in verdicts)
     if left:
         passed(f"{left} of {len(finishing)} contending hypotheses not scored")

@@ -5,7 +5,8 @@ data removed, a held-out segment is still bridged by integration from its neighb
 (continuity), so its misfit measures how well the fitted system reproduces data it was
 not fitted to, for chaotic systems too. A panel of short recordings is held out by
 whole recordings instead, each fitted only in its initial values with the law from the
-others (:func:`by_recording`).
+others (:func:`by_recording`); a recording of fewer segments than folds, by interleaved
+samples (:func:`by_sample`).
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ def cross_validate(problem: Problem, fit: Fit, max_iterations=10):
     the folds, the same errors)."""
     if by_recording(problem):
         return _recording_folds(problem, fit, max_iterations)
+    if by_sample(problem):
+        return _sample_folds(problem, fit, max_iterations)
     folds = problem.options.n_folds
     fold_of = np.concatenate([np.arange(g.n_segments) % folds for g in problem.groups])
     helds = [fold_of == f for f in range(folds)]
@@ -54,6 +57,44 @@ def by_recording(problem: Problem) -> bool:
     mean over segments dominated by a few at 25-50) and the check loses its power."""
     return (len(problem.groups) >= problem.options.n_folds
             and all(g.n_segments <= SHORT_RECORDING for g in problem.groups))
+
+
+def by_sample(problem: Problem) -> bool:
+    """Whether the held-out units are samples: fewer segments than folds (a recording
+    of a few dozen samples or less, not a panel). Held out by segments, each fold would
+    refit the law on half or two thirds of the samples and predict the rest from a
+    neighbour's few: an exact law scored 20 noise variances on an epidemic wave sampled
+    13 times (two segments), and the check had no power."""
+    return not by_recording(problem) and problem.n_segments < problem.options.n_folds
+
+
+def _sample_folds(problem: Problem, fit: Fit, max_iterations):
+    """Leave samples out: fold ``f`` holds out every ``n_folds``-th sample of each
+    recording from its ``f``-th on, bridged by integration from the samples on both
+    sides; a sample's error is its squared misfit (noise variances, averaged over the
+    observed states). The errors come recording by recording, in time order."""
+    folds = problem.options.n_folds
+    width = max(g.mask.shape[1] for g in problem.groups)
+    index = np.full((problem.n_segments, width), -1)  # the sample's in its recording
+    ident = np.full((problem.n_segments, width), -1)  # over all recordings
+    offsets = np.cumsum([0] + [len(t) for t in problem.times])
+    for g in problem.groups:
+        rows = slice(g.first, g.first + g.n_segments)
+        index[rows, :g.mask.shape[1]] = g.sample_index
+        ident[rows, :g.mask.shape[1]] = np.where(g.sample_index >= 0,
+                                                 g.sample_index + offsets[g.trajectory], -1)
+    helds = [(index >= 0) & (index % folds == f) for f in range(folds)]
+    helds = [held for held in helds if held.any()]
+
+    def fold(held):
+        try:
+            return problem.sample_errors(_without(problem, fit, held, max_iterations), held)
+        except BlowUp:
+            return np.full(int(held.sum()), np.inf)
+
+    by_fold = map_on(problem.options.device, fold, helds)
+    order = np.argsort(np.concatenate([ident[held] for held in helds]))
+    return _pooled([np.concatenate(by_fold)[order]])
 
 
 def _recording_folds(problem: Problem, fit: Fit, max_iterations):

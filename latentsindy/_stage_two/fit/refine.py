@@ -181,7 +181,8 @@ class Problem:
     # ------------------------------------------------------------- residuals
     def equations(self, system, starts, weights, rho, jacobian=True):
         """Normal equations (or the cost only) at (system, starts); ``weights`` (n_seg,)
-        multiply each segment's data residuals (0: held out)."""
+        multiply each segment's data residuals (0: held out), or (n_seg, samples) each
+        sample's (the padded sample slots of :class:`.shooting.Group`)."""
         n, n_free = starts.shape[1], system.n_free
         eq = NormalEquations(n_free, self.n_segments, n)
         data_cost = 0.0
@@ -191,7 +192,7 @@ class Problem:
         for g, segs, out in self.runs(system, starts, jacobian, self.n_obs):
             (vals, sens), (ends, sens_end) = out if jacobian else ((out[0], None),
                                                                     (out[1], None))
-            w = torch.as_tensor(weights[segs])[:, None, None] * g.mask[..., None]
+            w = _sample_weights(weights[segs], g.mask)
             a = None if self.carry is None else self.carry[g.trajectory]
             resid = whiten((vals - g.observed) / sig * g.mask[..., None], a) * w
             data_cost += float((resid**2).sum())
@@ -339,6 +340,15 @@ class Problem:
             errors += [float(per[k]) for k, s in enumerate(segs) if which[s]]
         return np.array(errors)
 
+    def sample_errors(self, fit: Fit, which):
+        """Squared data residual (noise units, averaged over the observed states) of
+        every sample marked in ``which`` (n_seg, samples), group by group."""
+        errors = []
+        for g, segs, resid in self._squared_residuals(fit):
+            held = np.asarray(which[segs][:, :g.mask.shape[1]], bool) & g.mask.numpy()
+            errors.append(resid.mean(dim=2).numpy()[held])
+        return np.concatenate(errors)
+
     def recording_errors(self, fit: Fit, which):
         """Misfit per degree of freedom (noise variances) of every recording whose
         segments are all in ``which``: squared data residuals over samples times
@@ -355,6 +365,14 @@ class Problem:
         for g, segs, (vals, _) in self.runs(fit.system, fit.starts, False, self.n_obs):
             a = None if self.carry is None else self.carry[g.trajectory]
             yield g, segs, whiten((vals - g.observed) / sig * g.mask[..., None], a) ** 2
+
+
+def _sample_weights(weights, mask):
+    """Data weights (K, M, 1) of a group's padded samples from its segments' weights:
+    one per segment (K,) or per sample slot (K, >= M)."""
+    w = torch.as_tensor(weights, dtype=torch.float64)
+    w = w[:, None] if w.ndim == 1 else w[:, :mask.shape[1]]
+    return (w * mask)[..., None]
 
 
 def _dominant_period(observed, times):
