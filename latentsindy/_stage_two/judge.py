@@ -4,11 +4,12 @@ For a proposal (:mod:`.hypotheses`) the closed system is assembled from
 structure (observed terms, hidden states' loadings, the closure's terms), then refined
 by multiple shooting (:mod:`.refine`) and its terms selected on the
 integrated likelihood (:mod:`.terms`: drops, additions, swaps, merges and exchanges
-scored by BIC). Last, interleaved held-out segments give its score. Among all scored proposals
-the sparsest one whose score is within one standard error of the best wins; others in
-that band with other hidden states make the result uncertain when they are no larger,
-or when the held-out data favour them (paired errors, :func:`paired_evidence`), and the
-summary says so.
+scored by BIC). Last, interleaved held-out folds (of segments; of whole recordings in a
+panel, of samples in a recording of a few dozen: :mod:`.fit.held_out`) give its score.
+Among all scored proposals the sparsest one whose score is within one standard error
+of the best wins; others in that band with other hidden states make the result
+uncertain when they are no larger, or when the held-out data favour them (paired
+errors, :func:`paired_evidence`), and the summary says so.
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ RESCALE = 0.5
 IMBALANCE = 1.5
 WHITE = 0.3
 # One-sided level of :func:`paired_evidence`: the held-out data favour one system over
-# another when its paired errors are lower with this confidence (t test over segments).
+# another when its paired errors are lower with this confidence (t test over held-out
+# units: segments, recordings or samples).
 FAVOURED = 0.975
 # First fits within this many times the best one's misfit (noise variances, the best
 # taken as at least 1) go on to term selection and the held-out score; the others cannot
@@ -113,10 +115,13 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
         # removed, is rough): the noise is lower still, and scores in the higher unit
         # would pass a law that misses the data by several noise variances
         noise = _noise_from_fit(scored, final)
-        if noise is not None and not spent("the judgement in the noise level of the best "
-                                           "selected fit"):
-            return judge_all(proposals, ctx, replace(options, noise=noise), max_hidden,
-                             nested, blind, settled=True)
+        step = "the judgement in the noise level of the best selected fit"
+        if noise is not None and not spent(step):
+            again = judge_all(proposals, ctx, replace(options, noise=noise), max_hidden,
+                              nested, blind, settled=True)
+            if not expired():
+                return again
+            passed(step)  # max_time ran out in it: this complete judgement stands
     left = sum(v.history[:1] == ("not judged",) for v in verdicts)
     if left:
         passed(f"{left} of {len(finishing)} contending hypotheses not scored")
@@ -327,8 +332,10 @@ def rank(verdicts):
 
 def paired_evidence(better, worse, unpaired=False) -> bool:
     """Whether the held-out data favour ``better`` over ``worse``: its error is lower on
-    the same segments by more than the t quantile (``FAVOURED``, one-sided, degrees of
-    freedom: segments - 1) times the standard error of the paired differences.
+    the same held-out units (segments; recordings or samples where those are held out,
+    :mod:`.fit.held_out`) by more than the t quantile (``FAVOURED``, one-sided, degrees
+    of freedom: units - 1) times the standard error of the paired differences. Units
+    held out in one fold share its refit, so the evidence is somewhat overstated.
 
     Pairing removes what the segments share (a hard stretch of data is hard for every
     system), so it resolves differences that the scores' own standard errors hide; the

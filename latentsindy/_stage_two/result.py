@@ -45,7 +45,7 @@ class HiddenDiscovery:
     uncertain : tuple of Alternative
         Structures with other hidden states (other carriers, another number of hidden
         states) that explain the data equally well and are no larger than the reported
-        one, or that the held-out data favour over it (paired errors per segment): the
+        one, or that the held-out data favour over it (paired held-out errors): the
         data cannot tell them apart; the simplest one is reported.
     doubts : tuple of str
         Checks the reported system failed, each a sentence saying what it means: it

@@ -47,8 +47,9 @@ class Verdict:
     history: tuple
     initial_misfit: float
     candidates: np.ndarray | None = None
-    # held-out error of each scored segment, in the folds' order (the same segments, in
-    # the same order, for every verdict of one discovery: :func:`.judge.rank` pairs them)
+    # held-out error of each held-out unit (segment, recording or sample: .fit.held_out),
+    # the same units in the same order for every verdict of one discovery
+    # (:func:`.judge.rank` pairs them)
     errors: np.ndarray | None = None
 
     @property
@@ -217,7 +218,7 @@ def finish(trial: Trial) -> Verdict:
 def selected_and_scored(trial: Trial):
     """What :func:`finish` computes, in a form that pickles (a helper process can
     compute it, :mod:`latentsindy._core.parallel`): (fit, history, score, standard
-    error, held-out errors per segment) after stepwise selection and the held-out
+    error, held-out errors per held-out unit) after stepwise selection and the held-out
     score, or why there is no score
     ("does not join", "blew up", "not judged": the discovery's ``max_time`` was spent
     before it started or while its folds were refitted)."""

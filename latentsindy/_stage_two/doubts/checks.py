@@ -105,7 +105,7 @@ def weak_check_doubts(expected, unaided=None, scored=True, recordings=None):
     power = ("its power could not be measured (the fitted system could not be simulated "
              "and refitted)" if expected is None else
              f"little power (a right system would score ~{expected:.3g} noise variances "
-             "here: its held-out stretches start from a few noisy samples)")
+             "here: what it holds out is predicted from a few noisy samples)")
     why = f"{unaided}; on" if unaided else "On"
     return (Doubt("weak check", f"{why} these data the held-out check has {power}, so a "
                   "law that misses the data by a few noise variances could pass it. Confirm "

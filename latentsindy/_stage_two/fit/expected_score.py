@@ -4,10 +4,11 @@ A held-out segment is predicted from a start that its neighbours pin down, so a 
 system scores about 1 noise variance there: the noise, and little else. Where the
 segments are few and short (a few samples per cycle), the start is pinned by a
 handful of noisy samples and the prediction carries its uncertainty too: an exact law
-then scores several noise variances (a dozen samples per epidemic wave: up to
-hundreds), and "expected ~1" would call a right law wrong. (A panel of short
-recordings is held out by recording, :func:`.held_out.by_recording`: there the
-reference is about 1.)
+then scores several noise variances (a dozen samples per epidemic wave held out by
+segments: up to hundreds), and "expected ~1" would call a right law wrong. (A panel
+of short recordings is held out by recording, :func:`.held_out.by_recording`, and a
+recording of fewer segments than folds by samples, :func:`.held_out.by_sample`: there
+the reference is about 1-2.3.)
 
 :func:`expected_score` measures that reference for the chosen system by a parametric
 bootstrap: data simulated from the fitted system at the recording's own times (its

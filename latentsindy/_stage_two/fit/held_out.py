@@ -64,7 +64,7 @@ def by_sample(problem: Problem) -> bool:
     of a few dozen samples or less, not a panel). Held out by segments, each fold would
     refit the law on half or two thirds of the samples and predict the rest from a
     neighbour's few: an exact law scored 20 noise variances on an epidemic wave sampled
-    13 times (two segments), and the check had no power."""
+    12 times (13 samples, two segments), and the check had no power."""
     return not by_recording(problem) and problem.n_segments < problem.options.n_folds
 
 
