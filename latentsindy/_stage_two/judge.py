@@ -172,9 +172,10 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
 
 
 def _noise_from_fit(trials, best):
-    """The noise level the best first fit implies, where it is below the data's own
-    estimate by more than ``RESCALE`` in variance, or where the states' levels are
-    out of proportion (else None).
+    """The noise level the best fit in ``trials`` implies (first fits, or the selected
+    and scored verdicts), where it is below the level they were fitted in by more than
+    ``RESCALE`` in variance, or where the states' levels are out of proportion (else
+    None).
 
     The data's estimate comes from differences of neighbouring samples, which at a few
     samples per cycle still hold the signal (prey-only Lotka-Volterra at 8 per cycle:
