@@ -27,10 +27,11 @@ SHORT_RECORDING = 2
 @timed("held-out score")
 def cross_validate(problem: Problem, fit: Fit, max_iterations=10):
     """Held-out misfit by interleaved folds (mean, standard error, per unit errors):
-    of segments, each bridged by its neighbours, or, where every recording is short (a
-    panel: :func:`by_recording`), of whole recordings. Each fold starts from ``fit`` and
-    is refitted without its data (independently: on a CPU a second core takes some of
-    the folds, the same errors)."""
+    of segments, each bridged by its neighbours; where every recording is short (a
+    panel: :func:`by_recording`), of whole recordings; in a recording of fewer segments
+    than folds (:func:`by_sample`), of samples. Each fold starts from ``fit`` and is
+    refitted without its data (independently: on a CPU a second core takes some of the
+    folds, the same errors)."""
     if by_recording(problem):
         return _recording_folds(problem, fit, max_iterations)
     if by_sample(problem):
@@ -39,14 +40,7 @@ def cross_validate(problem: Problem, fit: Fit, max_iterations=10):
     fold_of = np.concatenate([np.arange(g.n_segments) % folds for g in problem.groups])
     helds = [fold_of == f for f in range(folds)]
     helds = [held for held in helds if held.any() and not held.all()]
-
-    def fold(held):
-        try:
-            return problem.segment_errors(_without(problem, fit, held, max_iterations), held)
-        except BlowUp:
-            return np.full(int(held.sum()), np.inf)
-
-    return _pooled(map_on(problem.options.device, fold, helds))
+    return _pooled(_refitted(problem, fit, helds, problem.segment_errors, max_iterations))
 
 
 def by_recording(problem: Problem) -> bool:
@@ -85,14 +79,7 @@ def _sample_folds(problem: Problem, fit: Fit, max_iterations):
                                                  g.sample_index + offsets[g.trajectory], -1)
     helds = [(index >= 0) & (index % folds == f) for f in range(folds)]
     helds = [held for held in helds if held.any()]
-
-    def fold(held):
-        try:
-            return problem.sample_errors(_without(problem, fit, held, max_iterations), held)
-        except BlowUp:
-            return np.full(int(held.sum()), np.inf)
-
-    by_fold = map_on(problem.options.device, fold, helds)
+    by_fold = _refitted(problem, fit, helds, problem.sample_errors, max_iterations)
     order = np.argsort(np.concatenate([ident[held] for held in helds]))
     return _pooled([np.concatenate(by_fold)[order]])
 
@@ -124,6 +111,18 @@ def _recording_folds(problem: Problem, fit: Fit, max_iterations):
     for f, found in enumerate(by_fold):
         errors[f::folds] = found
     return _pooled([errors])
+
+
+def _refitted(problem: Problem, fit: Fit, helds, errors, max_iterations):
+    """For every fold's ``held`` units, ``errors(fit refitted without them, held)``; one
+    inf per held unit where the refit blows up."""
+    def fold(held):
+        try:
+            return errors(_without(problem, fit, held, max_iterations), held)
+        except BlowUp:
+            return np.full(int(held.sum()), np.inf)
+
+    return map_on(problem.options.device, fold, helds)
 
 
 def _without(problem: Problem, fit: Fit, held, max_iterations) -> Fit:
