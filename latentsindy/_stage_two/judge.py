@@ -17,19 +17,18 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from scipy import stats
 
 from .._core.budget import expired, passed, progress, spent
 from .._core.parallel import map_on
 from . import restate
 from .context import NESTED_TRIGGER, TIE, Context, floor_noise
-from .fit.field import ParametricSystem
 from .fit.refine import RefineOptions
 from .propose.nested import nested_proposals
 from .propose.proposal import close
+from .ranking import _same_terms, paired_evidence, rank, same_structure
 from .verdict import Verdict, build, finished, first_fits, selected_and_scored, unscored
 
-__all__ = ["Verdict", "build", "judge_all", "rank", "same_structure"]
+__all__ = ["Verdict", "build", "judge_all", "paired_evidence", "rank", "same_structure"]
 
 
 RATE_TRIGGER = 1.5  # best misfit (noise variances) above which rate states are tried
@@ -43,10 +42,6 @@ RESCALE = 0.5
 # (lag-1 autocorrelation at most WHITE): :func:`_balanced_noise`.
 IMBALANCE = 1.5
 WHITE = 0.3
-# One-sided level of :func:`paired_evidence`: the held-out data favour one system over
-# another when its paired errors are lower with this confidence (t test over held-out
-# units: segments, recordings or samples).
-FAVOURED = 0.975
 # First fits within this many times the best one's misfit (noise variances, the best
 # taken as at least 1) go on to term selection and the held-out score; the others cannot
 # come close on held-out data. Without stage one (``blind``) the closures are fitted in
@@ -275,11 +270,6 @@ def _without_repeats(trials):
     return [t for t in trials if id(t) not in drop]
 
 
-def _same_terms(a: ParametricSystem, b: ParametricSystem) -> bool:
-    return (a.state_names == b.state_names and a.features == b.features
-            and np.array_equal(a.free | (a.coef != 0), b.free | (b.coef != 0)))
-
-
 def _rate_candidates(proposals, ctx: Context, keep: int = 2) -> list:
     """Single-hidden-state proposals with the hidden state's rate as a second state: the
     first ``keep`` in the proposals' order (best first-order closure) and the ``keep``
@@ -290,86 +280,3 @@ def _rate_candidates(proposals, ctx: Context, keep: int = 2) -> list:
     best = sorted(range(len(rated)), key=lambda a: rated[a].score)[:keep]
     chosen = sorted(set(range(min(keep, len(rated)))) | set(best))
     return [rated[a] for a in chosen]
-
-
-def rank(verdicts):
-    """Verdicts ordered by choice: among the scored ones, the sparsest that the held-out
-    data do not reject against the best score (within one standard error of it, or not
-    worse on the same segments by :func:`paired_evidence`) first; returns (ordered,
-    uncertain) where ``uncertain`` lists the others in that band whose hidden states
-    are not a superset of the chosen one's (other carriers) and that are no larger than
-    it or favoured over it by the held-out data: structures the data cannot tell apart.
-    Systems in the band that only add terms or hidden states to the chosen one, or are
-    larger and fit no better, are parsimony's call. With no scored verdict, the
-    smallest comes first (those that do not join last)."""
-    unique = []
-    for v in sorted(verdicts, key=lambda v: (not v.scored, v.cv)):
-        if not any(same_structure(v, u) for u in unique):
-            unique.append(v)  # the same final system reached twice counts once
-    verdicts = unique
-    finite = [v for v in verdicts if v.scored and np.isfinite(v.cv)]
-    if not finite:  # a fit that is no trajectory of its system comes last; contenders
-        # left unscored by max_time first, the best in-sample misfit first among them
-        return sorted(verdicts, key=lambda v: (
-            v.history[:1] == ("does not join",), v.history[:1] != ("not judged",),
-            v.cv if v.history[:1] == ("not judged",) else v.size)), []
-    best = min(finite, key=lambda v: v.cv)
-    band = max(best.cv + best.cv_se, TIE)
-    inside = [v for v in finite
-              if v.cv <= band or not paired_evidence(best, v, unpaired=True)]
-    # equal sizes: fewer terms in the observed equations first. A hidden state can be
-    # shifted by any function of the observed states that the library holds (prey-only
-    # LV: h + d x with xdot = x h + d x^2 is the same system, same size); the variable
-    # that needs the fewest observed terms is the one that carries the dynamics.
-    chosen = min(inside, key=lambda v: (v.size, _observed_terms(v), v.cv))
-    ids = {id(v) for v in inside}
-    rest = sorted([v for v in verdicts if v is not chosen],
-                  key=lambda v: (not v.scored, id(v) not in ids,
-                                 v.size if id(v) in ids else 0, v.cv))
-    uncertain = [v for v in rest if id(v) in ids and not _extends(v, chosen)
-                 and (v.size <= chosen.size or paired_evidence(v, chosen, unpaired=True))]
-    return [chosen] + rest, uncertain
-
-
-def paired_evidence(better, worse, unpaired=False) -> bool:
-    """Whether the held-out data favour ``better`` over ``worse``: its error is lower on
-    the same held-out units (segments; recordings or samples where those are held out,
-    :mod:`.fit.held_out`) by more than the t quantile (``FAVOURED``, one-sided, degrees
-    of freedom: units - 1) times the standard error of the paired differences. Units
-    held out in one fold share its refit, so the evidence is somewhat overstated.
-
-    Pairing removes what the segments share (a hard stretch of data is hard for every
-    system), so it resolves differences that the scores' own standard errors hide; the
-    t quantile keeps a few segments (sparse samples: 4-8) from reading as strong
-    evidence. A larger alternative in the band makes the result uncertain only when
-    favoured: its extra parameters are priced by holding out (each fold refits without
-    the segment, so parameters that fit noise raise its held-out error), and scoring
-    merely as well is no evidence for them (prey-only LV at random times: ``dx/dt = h
-    x^2`` with a five-term closure, within one standard error of the exact law, paired
-    difference nil). Without paired errors (scored on other segments) the answer is
-    ``unpaired``: the band alone decides."""
-    a, b = getattr(better, "errors", None), getattr(worse, "errors", None)
-    if a is None or b is None or np.shape(a) != np.shape(b) or len(a) < 3:
-        return unpaired
-    d = np.asarray(b) - np.asarray(a)
-    se = d.std(ddof=1) / np.sqrt(len(d))
-    return bool(d.mean() > stats.t.ppf(FAVOURED, len(d) - 1) * se)
-
-
-def _observed_terms(v):
-    system = v.system
-    rows = slice(0, getattr(system, "n_observed", 0))
-    return int(((system.coef[rows] != 0) | system.free[rows]).sum())
-
-
-def _extends(v, chosen):
-    """Whether ``v``'s hidden states include all of ``chosen``'s (same defining terms,
-    at least the same order): then ``v`` is the chosen system with more in it, and
-    parsimony, not uncertainty, decides between them."""
-    a, b = v.proposal, chosen.proposal
-    return (set(b.structure.pivots) <= set(a.structure.pivots) and a.order >= b.order
-            and len(a.nested) >= len(b.nested))
-
-
-def same_structure(a: Verdict, b: Verdict) -> bool:
-    return _same_terms(a.system, b.system)

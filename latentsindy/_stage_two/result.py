@@ -45,8 +45,9 @@ class HiddenDiscovery:
     uncertain : tuple of Alternative
         Structures with other hidden states (other carriers, another number of hidden
         states) that explain the data equally well and are no larger than the reported
-        one, or that the held-out data favour over it (paired held-out errors): the
-        data cannot tell them apart; the simplest one is reported.
+        one, or that the held-out data favour over it (paired held-out errors), or
+        larger laws that are not the reported one with terms added, score no worse and
+        are leaned towards: the data cannot tell them apart; the simplest is reported.
     doubts : tuple of str
         Checks the reported system failed, each a sentence saying what it means: it
         could not be scored or does not reproduce held-out data down to their noise, its

@@ -30,9 +30,9 @@ def summary_text(result) -> str:
                      "(noise variances; ~1: reproduces unseen data down to its noise)")
     lines += [f"  DOUBT: {d}" for d in result.doubts]
     if result.uncertain:
-        lines.append("  STRUCTURE UNCERTAIN: these hidden states explain the data as well "
-                     "(no larger, or favoured on held-out data; the simplest is shown "
-                     "above):")
+        lines.append("  STRUCTURE UNCERTAIN: these systems explain the data as well (no "
+                     "larger; or larger, not the one shown with terms added, and the "
+                     "held-out data lean towards them; the simplest is shown above):")
         for alt in result.uncertain:
             lines.append(f"    - {alt.description}: score {alt.score:.4g} +- "
                          f"{alt.score_se:.2g}, {alt.size} parameters")

@@ -588,6 +588,30 @@ def test_a_larger_alternative_vetoes_confidence_only_when_favoured():
     assert ordered[0] is exact and uncertain == []
 
 
+def test_a_larger_law_with_other_terms_scoring_no_worse_makes_the_result_uncertain():
+    """Between laws that are not nested, parsimony is a tie-break: a 5-parameter law
+    with other terms (or in another hidden state) that scores no worse than the chosen
+    3-parameter one, its paired errors lower by 1.25 standard errors (the competition
+    case: 0.004 +- 0.003 over 40 segments), makes the result uncertain. Not when it is
+    the chosen law with a term added, nor when the paired errors do not lean towards
+    it (0.25 standard errors), nor when its score is worse."""
+    base = _segments(1.0, 0.2, 0.0, n=40)
+    noise = np.random.default_rng(1).standard_normal(40)
+    noise = (noise - noise.mean()) / noise.std(ddof=1) * np.sqrt(40) * 0.0032
+    chosen = _verdict(0.9746, 0.027, 3, 1, pivot=(0, 1), errors=base)
+    leaning = _verdict(0.9706, 0.028, 5, 2, errors=base - 0.004 + noise)
+    ordered, uncertain = rank([chosen, leaning])
+    assert ordered[0] is chosen and uncertain == [leaning]
+    same_terms_more = _verdict(0.9706, 0.028, 5, 1, pivot=(0, 1), errors=base - 0.004 + noise)
+    same_terms_more.system = SimpleNamespace(state_names=("x", "h"), features=(1, 2),
+                                             free=np.ones((1, 2), bool), coef=np.ones((1, 2)))
+    assert rank([chosen, same_terms_more]) == ([chosen, same_terms_more], [])
+    weak = _verdict(0.9738, 0.028, 5, 2, errors=base - 0.0008 + noise)
+    assert rank([chosen, weak]) == ([chosen, weak], [])
+    worse = _verdict(0.9750, 0.028, 5, 2, errors=base + 0.0004 + noise)
+    assert rank([chosen, worse]) == ([chosen, worse], [])
+
+
 def test_rank_prefers_the_smallest_within_one_standard_error():
     """One-standard-error rule: the 5-term system within the best one's band wins over
     the better-scoring 7-term one with the same hidden state (parsimony, not
