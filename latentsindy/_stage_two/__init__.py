@@ -15,11 +15,12 @@ Grouped by what each part does, in the order :func:`discover_hidden` runs them:
   ``shooting``: multiple shooting; ``least_squares``: Levenberg-Marquardt; ``refine``:
   the fit and its held-out score; ``terms``: term selection on the integrated fit);
 * ``verdict`` and ``judge``: each proposal fitted, its terms selected, scored on
-  held-out segments; ``rank`` picks the sparsest system the held-out data do not
-  reject against the best; ``restate`` tries the winner written another way (``rewrite/``: a hidden
-  state shifted by observed functions, ``gauge``; a state and its rate as one state
-  with a first integral, ``first_integral``; a state that is a function of the
-  observed ones, ``observed_function``);
+  held-out segments; ``ranking`` picks the sparsest system the held-out data do not
+  reject against the best, and lists those it cannot tell from it; ``restate`` tries
+  the winner written another way (``rewrite/``: a hidden state shifted by observed
+  functions, ``gauge``; a state and its rate as one state with a first integral,
+  ``first_integral``; a state that is a function of the observed ones,
+  ``observed_function``);
 * ``doubts/``: the checks on the chosen system, each failed one a
   :class:`~latentsindy.results.Doubt` (score and convergence, terms, states, the
   whole-recording run, terms beyond the search, a nested state folded back);
@@ -27,5 +28,5 @@ Grouped by what each part does, in the order :func:`discover_hidden` runs them:
   (``result``, ``result_parts``, ``summary``, ``figures``).
 
 Dependencies point one way: ``context`` <- ``fit`` <- ``rewrite`` <- ``propose`` <-
-``verdict`` <- ``judge``/``restate`` <- ``doubts`` <- ``assemble`` <- ``discover``.
+``verdict`` <- ``ranking`` <- ``judge``/``restate`` <- ``doubts`` <- ``assemble`` <- ``discover``.
 """

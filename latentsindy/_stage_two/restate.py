@@ -127,7 +127,8 @@ def nested_shifted(verdict: Verdict, ctx: Context, options) -> Verdict | None:
     if guesses is None:
         return None
     proposal = replace(verdict.proposal, hidden=[g[:, system.n_observed:] for g in guesses],
-                       origin=verdict.proposal.origin + ", nested state shifted")
+                       origin=verdict.proposal.origin + ", nested state shifted",
+                       stage_one=False)
     data = (verdict.problem.times, verdict.problem.observed)
     return restated(proposal, system, guesses, data, verdict, options)
 
@@ -166,7 +167,7 @@ def function_reduced(verdict: Verdict, options) -> Verdict | None:
         proposal = replace(p, structure=structure,
                            hidden=[g[:, n_obs:] for g in guesses],
                            origin=p.origin + f", {system.state_names[state]} as a function "
-                                             "of the other states")
+                                             "of the other states", stage_one=False)
         data = (verdict.problem.times, verdict.problem.observed)
         return restated(proposal, reduced_sys, guesses, data, verdict, options, candidates)
     return None

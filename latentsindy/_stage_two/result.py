@@ -46,8 +46,9 @@ class HiddenDiscovery:
         Structures with other hidden states (other carriers, another number of hidden
         states) that explain the data equally well and are no larger than the reported
         one, or that the held-out data favour over it (paired held-out errors), or
-        larger laws that are not the reported one with terms added, score no worse and
-        are leaned towards: the data cannot tell them apart; the simplest is reported.
+        stage one's own law where it is larger, not the reported one with terms added,
+        scores no worse and the held-out data lean towards it: the data cannot tell
+        them apart; the simplest is reported.
     doubts : tuple of str
         Checks the reported system failed, each a sentence saying what it means: it
         could not be scored or does not reproduce held-out data down to their noise, its

@@ -31,8 +31,8 @@ def summary_text(result) -> str:
     lines += [f"  DOUBT: {d}" for d in result.doubts]
     if result.uncertain:
         lines.append("  STRUCTURE UNCERTAIN: these systems explain the data as well (no "
-                     "larger; or larger, not the one shown with terms added, and the "
-                     "held-out data lean towards them; the simplest is shown above):")
+                     "larger; favoured on held-out data; or stage one's own law, which "
+                     "they lean towards; the simplest is shown above):")
         for alt in result.uncertain:
             lines.append(f"    - {alt.description}: score {alt.score:.4g} +- "
                          f"{alt.score_se:.2g}, {alt.size} parameters")

@@ -49,7 +49,7 @@ class Verdict:
     candidates: np.ndarray | None = None
     # held-out error of each held-out unit (segment, recording or sample: .fit.held_out),
     # the same units in the same order for every verdict of one discovery
-    # (:func:`.judge.rank` pairs them)
+    # (:func:`.ranking.rank` pairs them)
     errors: np.ndarray | None = None
 
     @property

@@ -75,7 +75,7 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
     first = []  # always judged: stage one's own structure, and per equation the carrier
     # whose series fits the data best and the one whose series closes best
     for structure in _shared(support, varying_pairs, series, max_rank):
-        p = evaluate(structure, ctx, "stage one")
+        p = replace(evaluate(structure, ctx, "stage one"), stage_one=True)
         first.append(p) if not first else None
         add(p)
         add(improve_constants(p, ctx))

@@ -125,7 +125,7 @@ def _as_proposal(parent, p, ctx, aug):
     hidden = [np.hstack([h, g]) for h, g in zip(parent.hidden, p.hidden, strict=True)]
     return replace(parent, hidden=hidden, closure=p.closure,
                    origin=f"{parent.origin}, nested ({feature} in the hidden equation)",
-                   nested=((p, carrier, aug),))
+                   nested=((p, carrier, aug),), stage_one=False)
 
 
 def monomial_name(expr, symbols):

@@ -29,6 +29,10 @@ class Proposal:
     # a hidden state inside the hidden equation (:mod:`.nested`): ((its proposal on the
     # augmented data, its carrier as a sympy monomial, the augmented context),)
     nested: tuple = ()
+    # stage one's own structure (its varying coefficients as hidden states) with its
+    # closure or the fuller one: the method's own law (:func:`..ranking.rank`). Every
+    # other proposal, and any made from it, is not
+    stage_one: bool = False
 
     @property
     def n_states(self) -> int:

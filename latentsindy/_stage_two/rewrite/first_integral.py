@@ -67,7 +67,7 @@ def integrated_system(verdict):
 def integrated_proposal(p, guesses, n_observed):
     """The proposal as the integrated system's origin: first order, its hidden series."""
     return replace(p, order=1, hidden=[g[:, n_observed:] for g in guesses],
-                   origin=p.origin + ", integrated")
+                   origin=p.origin + ", integrated", stage_one=False)
 
 
 def _closure_degree(p):

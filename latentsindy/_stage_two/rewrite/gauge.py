@@ -8,7 +8,7 @@ with fewer observed terms (prey-only Lotka-Volterra: ``xdot = x h + d x^2`` is
 where stage one's terms happened to land (short or unevenly sampled records keep such a
 term more often), so the chosen system's shift is derived exactly (substitution and the
 chain rule), refitted by integration, its terms selected and scored, and ranked with
-the others: at equal size the one with fewer observed terms wins (:func:`.judge.rank`).
+the others: at equal size the one with fewer observed terms wins (:func:`..ranking.rank`).
 
 A shift is only taken when the shifted hidden equations stay within the closure
 library (FitzHugh-Nagumo's ``vdot = h + v - v^3/3`` could move ``v - v^3/3`` into ``h``,
@@ -118,7 +118,8 @@ def shifted_proposal(p, dropped, guesses, n_observed):
     for i, k in dropped:
         support[i, k] = False
     return replace(p, structure=replace(p.structure, support=support),
-                   hidden=[g[:, n_observed:] for g in guesses], origin=p.origin + ", shifted")
+                   hidden=[g[:, n_observed:] for g in guesses], origin=p.origin + ", shifted",
+                   stage_one=False)
 
 
 # A refit of an exchanged system counts as the chosen one, shifted, when its hidden

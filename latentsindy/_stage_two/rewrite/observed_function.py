@@ -190,4 +190,5 @@ def _substituted(verdict, state, found, trajectories, exact):
 def reduced_proposal(p, guesses, n_observed, name):
     """The proposal as the reduced system's origin: no nested state, its hidden series."""
     return replace(p, nested=(), hidden=[g[:, n_observed:] for g in guesses],
-                   origin=p.origin + f", {name} as a function of the observed states")
+                   origin=p.origin + f", {name} as a function of the observed states",
+                   stage_one=False)
