@@ -9,7 +9,8 @@ panel, of samples in a recording of a few dozen: :mod:`.fit.held_out`) give its 
 Among all scored proposals the sparsest one whose score is within one standard error
 of the best wins; others in that band with other hidden states make the result
 uncertain when they are no larger, or when the held-out data favour them (paired
-errors, :func:`paired_evidence`), and the summary says so.
+errors), and so does stage one's own law where the held-out data lean towards it
+(:mod:`.ranking`); the summary says so.
 """
 
 from __future__ import annotations

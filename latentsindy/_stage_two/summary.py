@@ -30,9 +30,10 @@ def summary_text(result) -> str:
                      "(noise variances; ~1: reproduces unseen data down to its noise)")
     lines += [f"  DOUBT: {d}" for d in result.doubts]
     if result.uncertain:
-        lines.append("  STRUCTURE UNCERTAIN: these systems explain the data as well (no "
-                     "larger; favoured on held-out data; or stage one's own law, which "
-                     "they lean towards; the simplest is shown above):")
+        lines.append("  STRUCTURE UNCERTAIN: these systems explain the data as well (other "
+                     "hidden states, no larger; favoured on held-out data; or stage one's "
+                     "own law, towards which the held-out data lean; the simplest is shown "
+                     "above):")
         for alt in result.uncertain:
             lines.append(f"    - {alt.description}: score {alt.score:.4g} +- "
                          f"{alt.score_se:.2g}, {alt.size} parameters")

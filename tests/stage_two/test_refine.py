@@ -605,6 +605,10 @@ def test_stage_one_law_scoring_no_worse_than_a_sparser_choice_makes_it_uncertain
     assert ordered[0] is chosen and uncertain == [leaning]
     other = _verdict(0.9706, 0.028, 5, 2, errors=base - 0.004 + noise)
     assert rank([chosen, other]) == ([chosen, other], [])
+    # the same hidden state (pivot) with other terms: not nested, so a rival
+    same_state = _verdict(0.9706, 0.028, 5, 2, pivot=(0, 1), errors=base - 0.004 + noise,
+                          stage_one=True)
+    assert rank([chosen, same_state]) == ([chosen, same_state], [same_state])
     more = _verdict(0.9706, 0.028, 5, 1, pivot=(0, 1), errors=base - 0.004 + noise,
                     stage_one=True)
     more.system = SimpleNamespace(state_names=("x", "h"), features=(1, 2),

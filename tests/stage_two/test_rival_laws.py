@@ -32,4 +32,5 @@ def test_competition_to_coexistence_seen_once_is_not_reported_confident():
     assert not result.confident
     assert len(result.uncertain) >= 1
     assert all(alt.size > 3 and alt.score <= result.score for alt in result.uncertain)
+    assert any(alt.description.startswith("stage one") for alt in result.uncertain)
     assert "STRUCTURE UNCERTAIN" in result.summary()
