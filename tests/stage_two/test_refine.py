@@ -595,7 +595,8 @@ def test_stage_one_law_scoring_no_worse_than_a_sparser_choice_makes_it_uncertain
     standard errors (the competition case: 0.004 +- 0.003 over 40 segments), makes the
     result uncertain. Not when it is the chosen law with a term added, nor when the
     paired errors do not lean towards it (0.25 standard errors), nor when its score is
-    worse, nor when the leaning law is another larger one (not stage one's)."""
+    worse, nor when the leaning law is another larger one (not stage one's), nor where
+    both scores are ties at the noise-free floor (below ``TIE``)."""
     base = _segments(1.0, 0.2, 0.0, n=40)
     noise = np.random.default_rng(1).standard_normal(40)
     noise = (noise - noise.mean()) / noise.std(ddof=1) * np.sqrt(40) * 0.0032
@@ -618,6 +619,11 @@ def test_stage_one_law_scoring_no_worse_than_a_sparser_choice_makes_it_uncertain
     assert rank([chosen, weak]) == ([chosen, weak], [])
     worse = _verdict(0.9750, 0.028, 5, 2, errors=base + 0.0004 + noise, stage_one=True)
     assert rank([chosen, worse]) == ([chosen, worse], [])
+    # noise-free data: scores far below TIE are ties, a lean among them is rounding
+    exact = _verdict(9.2e-6, 1.5e-6, 3, 1, pivot=(0, 1), errors=1e-5 * base)
+    rounding = _verdict(8.4e-6, 1.5e-6, 5, 2, errors=1e-5 * (base - 0.004 + noise),
+                        stage_one=True)
+    assert rank([exact, rounding]) == ([exact, rounding], [])
 
 
 def test_rank_prefers_the_smallest_within_one_standard_error():
