@@ -31,7 +31,7 @@ def rate_verdict(rate_law, closure_degree=2):
     library = ps.PolynomialLibrary(degree=closure_degree)
     library.fit(np.zeros((3, 4)))
     proposal = SimpleNamespace(
-        order=2, hidden=None, origin="carrier, with its rate",
+        order=2, hidden=None, origin="carrier, with its rate", stage_one=False,
         structure=SimpleNamespace(n_hidden=1, pivots=((1, 1),)),
         closure=SimpleNamespace(library=library,
                                 feature_names=library.get_feature_names(["g0", "h0", "x", "y"])))
@@ -76,7 +76,7 @@ def test_the_proposal_is_first_order():
     _, guesses = integrated_system(verdict)
     fields = make_dataclass("P", list(vars(verdict.proposal)))
     p = integrated_proposal(fields(**vars(verdict.proposal)), guesses, 2)
-    assert p.order == 1 and p.origin.endswith(", integrated")
+    assert p.order == 1 and p.origin.endswith(", integrated") and not p.stage_one
     np.testing.assert_array_equal(p.hidden[0], tr[:, 2:3])
 
 
