@@ -24,10 +24,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import cho_solve_banded, cholesky_banded, eig_banded
+from scipy.linalg import eig_banded
 from scipy.optimize import minimize, minimize_scalar
 from scipy.special import digamma, gammaln
 
+from .._core.banded import cholesky_upper, solve_upper
 from .vcm import ORDER, EquationGram
 from .vcm_spread import NoSpread, Spread, covariance, penalty_band
 
@@ -116,7 +117,7 @@ def _prior_logdet(q, rough, ridge):
     inner = np.stack([np.concatenate([np.zeros(2), np.ones(n - 2)]),
                       np.concatenate([np.zeros(1), np.full(n - 1, -4.0)]),
                       6.0 + ridge / (rough * q)])
-    chol = cholesky_banded(inner, check_finite=False)
+    chol = cholesky_upper(inner)
     return (2.0 * np.log(ridge) + float(np.sum(np.log(q))) + n * np.log(rough)
             + 2.0 * float(np.sum(np.log(chol[-1]))))
 
@@ -144,6 +145,11 @@ class _Normal:
         self.cc = g.const[np.ix_(ci, ci)]
         self.rhs_b = g.spline_y[:, vi].reshape(m_knots * v)
         self.rhs_c = g.const_y[ci]
+        # where each varying term's penalty lands in the flattened band: term a's
+        # diagonals d = 0, 1, 2 in turn (unique positions: one += adds them all)
+        self.penalty_at = np.concatenate(
+            [(self.width - 1 - d * v) * (m_knots * v) + knots[d:] * v + a
+             for a in range(v) for d in range(3)]).astype(np.intp) if v else np.zeros(0, np.intp)
 
 
 class EquationModel:
@@ -171,34 +177,37 @@ class EquationModel:
         # record, see structure.side_by_side)
         self.looked = None
 
+    def _penalty_rows(self, q):
+        """The penalty band's diagonals d = 0, 1, 2 (as :class:`_Normal` places them)."""
+        pen = self._uniform if q is None else penalty_band(q, self.g.n_knots)
+        return [pen[2 - d, d:] for d in range(3)]
+
     def _prior_logdet(self, q, rough):
         if q is None:  # uniform weights: the eigenvalues of D2'D2 give it directly
             return float(np.sum(np.log(rough * self._eig + self.ridge)))
         return _prior_logdet(q, rough, self.ridge)
 
     # ----------------------------------------------------------------- solving
-    def _solve(self, st: _Normal, log_rough, weights):
+    def _solve(self, st: _Normal, log_rough, weights, rows=None):
         """Log evidence (noise variance integrated out) and the posterior's pieces;
-        None when singular."""
-        g, v, m_knots = self.g, len(st.varying), self.g.n_knots
+        None when singular. ``rows``: the weights' penalty diagonals
+        (:meth:`_penalty_rows` of each), where the caller keeps them."""
+        g, v = self.g, len(st.varying)
         rough = np.exp(np.clip(np.asarray(log_rough, float), *LOG_ROUGH))
         ab = st.data_band.copy()
-        knots = np.arange(m_knots)
-        for a in range(v):
-            pen = self._uniform if weights[a] is None else penalty_band(weights[a], m_knots)
-            for d in range(3):
-                ab[st.width - 1 - d * v, knots[d:] * v + a] += rough[a] * pen[2 - d, d:]
         if v:
+            rows = rows or [self._penalty_rows(q) for q in weights]
+            ab.reshape(-1)[st.penalty_at] += np.concatenate(
+                [rough[a] * row for a in range(v) for row in rows[a]])
             ab[st.width - 1] += self.ridge
         cc = st.cc + self.level * np.eye(len(st.constant))
         logdet, u = 0.0, None
         try:
             if v:
-                u = cholesky_banded(ab, check_finite=False)
+                u = cholesky_upper(ab)
                 logdet += 2.0 * float(np.sum(np.log(u[-1])))
-                sol_b = cho_solve_banded((u, False), st.rhs_b, check_finite=False)
-                proj = (cho_solve_banded((u, False), st.cross, check_finite=False)
-                        if st.cross.size else st.cross)
+                sol_b = solve_upper(u, st.rhs_b)
+                proj = solve_upper(u, st.cross)
                 schur = cc - st.cross.T @ proj
                 rhs_s = st.rhs_c - st.cross.T @ sol_b
             else:
@@ -225,8 +234,10 @@ class EquationModel:
 
     def _optimise(self, st, weights, x0):
         """Roughness of every varying term by maximum evidence."""
+        rows = [self._penalty_rows(q) for q in weights]  # fixed while roughness moves
+
         def objective(z):
-            solved = self._solve(st, np.atleast_1d(z), weights)
+            solved = self._solve(st, np.atleast_1d(z), weights, rows)
             return 1e300 if solved is None else -solved[0]
 
         if len(x0) == 1:

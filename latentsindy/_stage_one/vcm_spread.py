@@ -94,29 +94,45 @@ def penalty_band(q, n_knots):
     return np.stack([off2, off1, qq[j + 2] + 4 * qq[j + 1] + qq[j]])
 
 
-def selected_inverse(u: np.ndarray) -> np.ndarray:
+def selected_inverse(u: np.ndarray, chunk: int = 256) -> np.ndarray:
     """Entries of A^-1 inside the band of A = U'U, from its upper banded Cholesky factor
     ``u`` (scipy's layout), in the same layout (Takahashi's recursion: O(n w^2) for n
-    unknowns and bandwidth w, never the dense inverse)."""
+    unknowns and bandwidth w, never the dense inverse).
+
+    Row i of the inverse's band needs the w x w block of the inverse just below and to
+    the right of it. The block is read in place from a dense buffer that holds
+    ``chunk`` + w rows and columns of the inverse at a time (when the recursion leaves
+    the buffer, the block it still needs moves to the buffer's far corner), so a step
+    copies nothing."""
     width, n = u.shape
     w = width - 1
     out = np.zeros_like(u)
-    window = np.zeros((w, w))  # Sigma[i+1 : i+1+w, i+1 : i+1+w]
-    offsets = np.arange(1, w + 1)
+    # upper[i, k - 1] = U[i, i + k], k = 1..w (zero past the last unknown)
+    upper = np.zeros((n + w, w))
+    for k in range(1, min(w, n - 1) + 1):
+        upper[: n - k, k - 1] = u[w - k, k:]
+    span = chunk + w
+    buffer = np.zeros((span, span))  # buffer[p, q] = Sigma[base + p, base + q]
+    base = max(n - span, 0)
+    right = np.zeros((n, w))  # right[i, k - 1] = Sigma[i, i + k]
     for i in range(n - 1, -1, -1):
+        if i < base:  # move the block below row i to the far corner
+            shift = min(chunk, base)
+            block = buffer[:w, :w].copy()
+            base -= shift
+            buffer[shift:shift + w, shift:shift + w] = block
         m = min(w, n - 1 - i)
         uii = u[w, i]
-        row_u = u[w - offsets[:m], i + offsets[:m]]
-        row = -(row_u @ window[:m, :m]) / uii  # Sigma[i, i+1 .. i+m]
+        row_u = upper[i, :m]
+        p = i - base
+        window = buffer[p + 1:p + 1 + m, p + 1:p + 1 + m]  # Sigma[i+1 .. i+m] squared
+        row = -(row_u @ window) / uii  # Sigma[i, i+1 .. i+m]
         sii = 1.0 / uii**2 - float(row_u @ row) / uii
         out[w, i] = sii
-        out[w - offsets[:m], i + offsets[:m]] = row
-        if w:
-            new = np.empty((w, w))
-            new[0, 0] = sii
-            k = min(w - 1, m)
-            new[0, 1:k + 1] = row[:k]
-            new[1:k + 1, 0] = row[:k]
-            new[1:, 1:] = window[:w - 1, :w - 1]
-            window = new
+        right[i, :m] = row
+        buffer[p, p] = sii
+        buffer[p, p + 1:p + 1 + m] = row
+        buffer[p + 1:p + 1 + m, p] = row
+    for k in range(1, min(w, n - 1) + 1):
+        out[w - k, k:] = right[: n - k, k - 1]
     return out

@@ -21,19 +21,22 @@ def test_spline_basis_is_a_partition_of_unity():
     assert first.min() >= 0 and first.max() <= 16
 
 
-def test_selected_inverse_matches_the_dense_inverse():
+@pytest.mark.parametrize("n, w, chunk", [(40, 5, 256), (40, 5, 1), (40, 5, 7), (41, 0, 3),
+                                         (3, 5, 2), (1, 2, 4)])
+def test_selected_inverse_matches_the_dense_inverse(n, w, chunk):
+    """Every chunk size of the recursion's buffer (1: it moves at every row) and a band
+    wider than the matrix."""
     rng = np.random.default_rng(0)
-    n, w = 40, 5
     mask = np.abs(np.subtract.outer(np.arange(n), np.arange(n))) <= w
     b = rng.normal(size=(n, n))
     a = (b + b.T) * mask
     a += np.eye(n) * (np.abs(a).sum(axis=1).max() + 1)
     band = np.zeros((w + 1, n))
-    for off in range(w + 1):
+    for off in range(min(w, n - 1) + 1):
         band[w - off, off:] = np.diag(a, off)
-    inv = selected_inverse(cholesky_banded(band))
+    inv = selected_inverse(cholesky_banded(band), chunk=chunk)
     dense = np.linalg.inv(a)
-    for off in range(w + 1):
+    for off in range(min(w, n - 1) + 1):
         np.testing.assert_allclose(inv[w - off, off:], np.diag(dense, off), atol=1e-14)
 
 

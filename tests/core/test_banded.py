@@ -1,0 +1,37 @@
+"""The direct LAPACK banded Cholesky: scipy's results to the bit, and its errors."""
+
+import numpy as np
+import pytest
+from scipy.linalg import cho_solve_banded, cholesky_banded
+
+from latentsindy._core.banded import cholesky_upper, solve_upper
+
+
+def _band(n, w, seed=0):
+    rng = np.random.default_rng(seed)
+    band = rng.normal(size=(w + 1, n)) * 0.3
+    band[-1] = np.abs(band[-1]) + w + 1.0  # diagonally dominant: positive definite
+    return band
+
+
+@pytest.mark.parametrize("n, w", [(1, 0), (50, 3), (700, 24)])
+def test_factor_and_solves_are_scipys_to_the_bit(n, w):
+    band = _band(n, w)
+    factor = cholesky_upper(band)
+    np.testing.assert_array_equal(factor, cholesky_banded(band, check_finite=False))
+    rhs = np.random.default_rng(1).normal(size=(n, 3))
+    for b in (rhs, rhs[:, 0]):
+        np.testing.assert_array_equal(
+            solve_upper(factor, b), cho_solve_banded((factor, False), b, check_finite=False))
+
+
+def test_a_matrix_that_is_not_positive_definite_raises():
+    band = _band(10, 1)
+    band[-1, 4] = -1.0
+    with pytest.raises(np.linalg.LinAlgError, match="5-th leading minor not positive"):
+        cholesky_upper(band)
+
+
+def test_no_right_hand_sides_come_back_as_they_are():
+    rhs = np.zeros((10, 0))
+    assert solve_upper(cholesky_upper(_band(10, 2)), rhs) is rhs
