@@ -854,3 +854,24 @@ def test_white_noise_is_not_read_as_coloured():
     data, _ = lv_problem(0.02, n_times=2000)
     level, phi = ar1_noise(data.x[:, :1], data.t)
     assert phi[0] == 0.0 and level[0] is None
+
+
+def test_hermite_interpolation_in_place_is_the_plain_sum_to_the_bit():
+    """The numpy path interpolates in place; the same products summed left to right as
+    the plain expression (the torch path's), digit for digit, and twice in a row (the
+    table made at the first call is reused, not consumed)."""
+    from latentsindy._stage_two.fit.shooting import _hermite, make_groups
+
+    t = np.linspace(0.0, 3.0, 301)
+    group = make_groups([t], [np.zeros((301, 1))], 0.5, 0.03)[0]
+    rng = np.random.default_rng(4)
+    shape = (group.n_segments, len(group.grid), 2, 5)
+    z, dz = rng.normal(size=shape), rng.normal(size=shape)
+    for _ in range(2):
+        got = _hermite(z, dz, group)
+        rows, nxt, w00, w10, w01, w11 = (np.asarray(a) for a in group.hermite["numpy"])
+        flat, dflat = z.reshape(-1, 2, 5), dz.reshape(-1, 2, 5)
+        w = [a[:, None, None] for a in (w00, w10, w01, w11)]
+        plain = w[0] * flat[rows] + w[1] * dflat[rows] + w[2] * flat[nxt] + w[3] * dflat[nxt]
+        np.testing.assert_array_equal(got, plain.reshape(got.shape))
+        assert np.array_equal(nxt, rows + 1)
