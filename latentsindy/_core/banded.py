@@ -3,7 +3,7 @@
 The same LAPACK routines (``dpbtrf``, ``dpbtrs``) and arguments as
 ``scipy.linalg.cholesky_banded`` and ``cho_solve_banded`` with ``check_finite=False``,
 so the results are the same to the bit, without the per-call validation and batching
-layers (a third to a half of a call's time at the sizes of stage one's evidence, which
+layers (up to half of a call's time on the small bands of stage one's evidence, which
 the structure search evaluates tens of thousands of times). Upper form only, float64
 only: the callers build their bands themselves.
 """
