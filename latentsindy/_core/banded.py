@@ -5,7 +5,8 @@ The same LAPACK routines (``dpbtrf``, ``dpbtrs``) and arguments as
 so the results are the same to the bit, without the per-call validation and batching
 layers (up to half of a call's time on the small bands of stage one's evidence, which
 the structure search evaluates tens of thousands of times). Upper form only, float64
-only: the callers build their bands themselves.
+only (other dtypes are cast to it, where scipy would keep single precision): the
+callers build their bands themselves.
 """
 
 from __future__ import annotations
@@ -28,6 +29,9 @@ def cholesky_upper(ab: np.ndarray) -> np.ndarray:
 def solve_upper(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """``A^-1 rhs`` from the upper banded Cholesky factor of ``A`` (``rhs``: a vector or
     a matrix of right-hand sides; returned unchanged when empty)."""
+    if rhs.shape[0] != factor.shape[1]:
+        raise ValueError(f"the right-hand sides have {rhs.shape[0]} rows for a factor of "
+                         f"{factor.shape[1]} unknowns; pass one row per unknown.")
     if rhs.size == 0:
         return rhs
     solution, info = dpbtrs(factor, rhs, lower=0)

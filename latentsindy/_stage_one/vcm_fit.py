@@ -194,9 +194,10 @@ class EquationModel:
         (:meth:`_penalty_rows` of each), where the caller keeps them."""
         g, v = self.g, len(st.varying)
         rough = np.exp(np.clip(np.asarray(log_rough, float), *LOG_ROUGH))
-        ab = st.data_band.copy()
+        ab = st.data_band.copy()  # C order: reshape(-1) below is a view of it
         if v:
-            rows = rows or [self._penalty_rows(q) for q in weights]
+            if rows is None:
+                rows = [self._penalty_rows(q) for q in weights]
             ab.reshape(-1)[st.penalty_at] += np.concatenate(
                 [rough[a] * row for a in range(v) for row in rows[a]])
             ab[st.width - 1] += self.ridge

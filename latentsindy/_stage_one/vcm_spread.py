@@ -101,22 +101,25 @@ def selected_inverse(u: np.ndarray, chunk: int = 256) -> np.ndarray:
 
     Row i of the inverse's band needs the w x w block of the inverse just below and to
     the right of it. The block is read in place from a dense buffer that holds
-    ``chunk`` + w rows and columns of the inverse at a time (when the recursion leaves
-    the buffer, the block it still needs moves to the buffer's far corner), so a step
-    copies nothing."""
+    ``chunk`` + w rows and columns of the inverse at a time (entries inside the band of
+    the rows computed so far; the rest is stale), so a row copies nothing; when the
+    recursion leaves the buffer, the w x w block it still needs is moved up with it,
+    once every ``chunk`` rows."""
+    if chunk < 1:
+        raise ValueError(f"chunk must be a positive number of rows; got {chunk!r}.")
     width, n = u.shape
     w = width - 1
     out = np.zeros_like(u)
     # upper[i, k - 1] = U[i, i + k], k = 1..w (zero past the last unknown)
-    upper = np.zeros((n + w, w))
+    upper = np.zeros((n, w))
     for k in range(1, min(w, n - 1) + 1):
         upper[: n - k, k - 1] = u[w - k, k:]
-    span = chunk + w
-    buffer = np.zeros((span, span))  # buffer[p, q] = Sigma[base + p, base + q]
-    base = max(n - span, 0)
+    span = min(chunk + w, n)
+    buffer = np.zeros((span, span))  # buffer[p, q] = Sigma[base + p, base + q] in the band
+    base = n - span
     right = np.zeros((n, w))  # right[i, k - 1] = Sigma[i, i + k]
     for i in range(n - 1, -1, -1):
-        if i < base:  # move the block below row i to the far corner
+        if i < base:  # the buffer moves up by `shift` rows, the block below row i with it
             shift = min(chunk, base)
             block = buffer[:w, :w].copy()
             base -= shift

@@ -35,3 +35,9 @@ def test_a_matrix_that_is_not_positive_definite_raises():
 def test_no_right_hand_sides_come_back_as_they_are():
     rhs = np.zeros((10, 0))
     assert solve_upper(cholesky_upper(_band(10, 2)), rhs) is rhs
+
+
+def test_right_hand_sides_of_another_length_are_refused():
+    factor = cholesky_upper(_band(6, 1))
+    with pytest.raises(ValueError, match="7 rows for a factor of 6 unknowns"):
+        solve_upper(factor, np.ones(7))

@@ -291,6 +291,7 @@ def _hermite(z, dz, group: Group | Batch):
     shape = (-1, *([1] * len(rest)))
     w00, w10, w01, w11 = (w.reshape(shape) for w in (w00, w10, w01, w11))
     if isinstance(z, np.ndarray):  # in place: the same sums, left to right, fewer arrays
+        # (z and dz are float64, as Integrator.run makes them: in place keeps their type)
         values = z[rows]
         values *= w00
         for weight, source, at in ((w10, dz, rows), (w01, z, next_rows), (w11, dz, next_rows)):
@@ -303,9 +304,10 @@ def _hermite(z, dz, group: Group | Batch):
 
 
 def _hermite_table(group: Group | Batch, on):
-    """Rows of the flattened grid values (segment, grid index) left of each sample, and
-    the Hermite weights of the values and slopes at both ends (the slopes' times the
-    step), for the group's positions: made once per group (and device)."""
+    """Rows of the flattened grid values (segment, grid index) left of each sample, those
+    rows plus one (right of it), and the Hermite weights of the values and slopes at
+    both ends (the slopes' times the step), for the group's positions: made once per
+    group (and device)."""
     grid = group.grid.cpu().numpy()
     positions = group.positions.cpu().numpy()
     if grid.ndim == 1:
