@@ -126,9 +126,8 @@ def nested_shifted(verdict: Verdict, ctx: Context, options) -> Verdict | None:
                               shifts)
     if guesses is None:
         return None
-    proposal = replace(verdict.proposal, hidden=[g[:, system.n_observed:] for g in guesses],
-                       origin=verdict.proposal.origin + ", nested state shifted",
-                       stage_one=False)
+    proposal = verdict.proposal.derived(", nested state shifted",
+                                        hidden=[g[:, system.n_observed:] for g in guesses])
     data = (verdict.problem.times, verdict.problem.observed)
     return restated(proposal, system, guesses, data, verdict, options)
 
@@ -164,10 +163,8 @@ def function_reduced(verdict: Verdict, options) -> Verdict | None:
         st = p.structure
         structure = replace(st, loadings=np.delete(st.loadings, a, axis=-1),
                             pivots=st.pivots[:a] + st.pivots[a + 1:])
-        proposal = replace(p, structure=structure,
-                           hidden=[g[:, n_obs:] for g in guesses],
-                           origin=p.origin + f", {system.state_names[state]} as a function "
-                                             "of the other states", stage_one=False)
+        proposal = p.derived(f", {system.state_names[state]} as a function of the other "
+                             "states", structure=structure, hidden=[g[:, n_obs:] for g in guesses])
         data = (verdict.problem.times, verdict.problem.observed)
         return restated(proposal, reduced_sys, guesses, data, verdict, options, candidates)
     return None

@@ -1,6 +1,5 @@
 """A hidden state and its rate whose law is the derivative of a first-order law."""
 
-from dataclasses import make_dataclass
 from types import SimpleNamespace
 
 import numpy as np
@@ -9,6 +8,7 @@ import sympy as sp
 
 from latentsindy._stage_two.doubts.states import first_integral_doubt
 from latentsindy._stage_two.fit.field import ParametricSystem
+from latentsindy._stage_two.propose.proposal import Proposal
 from latentsindy._stage_two.rewrite.first_integral import integrated_proposal, integrated_system
 
 A_OBS, A, B, C0 = -3.0, 0.8, -0.3, 0.05
@@ -74,8 +74,7 @@ def test_beyond_the_closure_library():
 def test_the_proposal_is_first_order():
     verdict, tr = rate_verdict({R: A, H * R: 2 * B})
     _, guesses = integrated_system(verdict)
-    fields = make_dataclass("P", list(vars(verdict.proposal)))
-    p = integrated_proposal(fields(**vars(verdict.proposal)), guesses, 2)
+    p = integrated_proposal(Proposal(fit=None, **vars(verdict.proposal)), guesses, 2)
     assert p.order == 1 and p.origin.endswith(", integrated") and not p.stage_one
     np.testing.assert_array_equal(p.hidden[0], tr[:, 2:3])
 

@@ -290,16 +290,14 @@ def _hermite(z, dz, group: Group | Batch):
     z, dz = z.reshape(k * g, *rest), dz.reshape(k * g, *rest)
     shape = (-1, *([1] * len(rest)))
     w00, w10, w01, w11 = (w.reshape(shape) for w in (w00, w10, w01, w11))
-    if isinstance(z, np.ndarray):  # in place: the same sums, left to right, fewer arrays
-        # (z and dz are float64, as Integrator.run makes them: in place keeps their type)
-        values = z[rows]
-        values *= w00
-        for weight, source, at in ((w10, dz, rows), (w01, z, next_rows), (w11, dz, next_rows)):
-            term = source[at]
-            term *= weight
-            values += term
-    else:
-        values = (w00 * z[rows] + w10 * dz[rows] + w01 * z[next_rows] + w11 * dz[next_rows])
+    # in place (indexing by rows copies): w00 z + w10 dz + w01 z' + w11 dz', summed left
+    # to right, with fewer arrays; z and dz are float64, as Integrator.run makes them
+    values = z[rows]
+    values *= w00
+    for weight, source, at in ((w10, dz, rows), (w01, z, next_rows), (w11, dz, next_rows)):
+        term = source[at]
+        term *= weight
+        values += term
     return values.reshape(k, group.positions.shape[1], *rest)
 
 

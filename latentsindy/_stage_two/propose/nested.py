@@ -123,9 +123,8 @@ def _as_proposal(parent, p, ctx, aug):
     carrier = sp.sympify(aug.feature_exprs[k]).xreplace({q0: h0})
     feature = monomial_name(carrier, state_symbols(list(ctx.observed_names) + ["h0"]))
     hidden = [np.hstack([h, g]) for h, g in zip(parent.hidden, p.hidden, strict=True)]
-    return replace(parent, hidden=hidden, closure=p.closure,
-                   origin=f"{parent.origin}, nested ({feature} in the hidden equation)",
-                   nested=((p, carrier, aug),), stage_one=False)
+    return parent.derived(f", nested ({feature} in the hidden equation)", hidden=hidden,
+                          closure=p.closure, nested=((p, carrier, aug),))
 
 
 def monomial_name(expr, symbols):

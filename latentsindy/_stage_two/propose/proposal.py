@@ -3,7 +3,7 @@ once per structure and context (:func:`evaluate`, cached on the context)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -33,6 +33,12 @@ class Proposal:
     # closure or the fuller one: the method's own law (:func:`..ranking.rank`). Every
     # other proposal, and any made from it, is not
     stage_one: bool = False
+
+    def derived(self, origin_suffix: str, **changes) -> Proposal:
+        """A proposal made from this one (a rewrite, a nested or shifted state): its
+        origin extended by ``origin_suffix``, ``changes`` applied, no longer stage one's
+        own law."""
+        return replace(self, origin=self.origin + origin_suffix, stage_one=False, **changes)
 
     @property
     def n_states(self) -> int:

@@ -16,8 +16,6 @@ degree.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import sympy as sp
 
@@ -66,8 +64,7 @@ def integrated_system(verdict):
 
 def integrated_proposal(p, guesses, n_observed):
     """The proposal as the integrated system's origin: first order, its hidden series."""
-    return replace(p, order=1, hidden=[g[:, n_observed:] for g in guesses],
-                   origin=p.origin + ", integrated", stage_one=False)
+    return p.derived(", integrated", order=1, hidden=[g[:, n_observed:] for g in guesses])
 
 
 def _closure_degree(p):

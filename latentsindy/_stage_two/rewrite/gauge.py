@@ -117,9 +117,8 @@ def shifted_proposal(p, dropped, guesses, n_observed):
     support = p.structure.support.copy()
     for i, k in dropped:
         support[i, k] = False
-    return replace(p, structure=replace(p.structure, support=support),
-                   hidden=[g[:, n_observed:] for g in guesses], origin=p.origin + ", shifted",
-                   stage_one=False)
+    return p.derived(", shifted", structure=replace(p.structure, support=support),
+                     hidden=[g[:, n_observed:] for g in guesses])
 
 
 # A refit of an exchanged system counts as the chosen one, shifted, when its hidden

@@ -26,7 +26,6 @@ whether the system without the state reproduces the data as well.
 from __future__ import annotations
 
 import itertools
-from dataclasses import replace
 
 import numpy as np
 import sympy as sp
@@ -189,6 +188,5 @@ def _substituted(verdict, state, found, trajectories, exact):
 
 def reduced_proposal(p, guesses, n_observed, name):
     """The proposal as the reduced system's origin: no nested state, its hidden series."""
-    return replace(p, nested=(), hidden=[g[:, n_observed:] for g in guesses],
-                   origin=p.origin + f", {name} as a function of the observed states",
-                   stage_one=False)
+    return p.derived(f", {name} as a function of the observed states", nested=(),
+                     hidden=[g[:, n_observed:] for g in guesses])
