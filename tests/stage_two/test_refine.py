@@ -268,7 +268,7 @@ def test_term_selection_solves_large_starts_blocks_through_their_band():
     band, the same as a sparse LU; a block that is not banded is solved by the LU."""
     import scipy.sparse as sps
 
-    from latentsindy._stage_two.fit.terms import _solve_starts
+    from latentsindy._stage_two.fit.quadratic import solve_starts as _solve_starts
 
     rng = np.random.default_rng(3)
     k, n = 400, 2
@@ -796,7 +796,7 @@ def test_missing_terms_name_a_term_the_data_call_for():
                                     free_row=np.ones(5, dtype=bool)))
     assert change == pytest.approx((added.data_cost - strong[1].data_cost)
                                    / max(strong[1].residual_variance, 1.0), rel=0.02)
-    model = terms_module._Quadratic(problem, fit, candidates)
+    model = terms_module.Quadratic(problem, fit, candidates)
     (gain, _, _), = model.additions(terms_module._price(problem, fit, candidates),
                                     max(fit.residual_variance, 1.0))
     assert -gain > terms_module.MARGIN  # the absent term's predicted shortfall

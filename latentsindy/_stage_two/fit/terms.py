@@ -23,17 +23,14 @@ one is then refitted exactly and kept only if the exact criterion improves.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sps
-import scipy.sparse.linalg as spla
 import torch
-from scipy.linalg import cho_solve_banded
 
 from ..._core.budget import spent
 from ..._core.parallel import available, forked_map
 from ..._core.timing import timed
 from ..context import MARGIN
 from .field import ParametricSystem
-from .normal_equations import DENSE, banded_factor
+from .quadratic import Quadratic
 from .refine import Fit, Problem
 from .shooting import BlowUp
 
@@ -67,7 +64,7 @@ def select_terms(problem: Problem, fit: Fit, candidates, max_steps=MAX_STEPS):
         if spent("term selection"):  # max_time: the terms selected so far
             break
         s2 = max(fit.residual_variance, 1.0)
-        model = _Quadratic(problem, fit, candidates & ~fit.system.free)
+        model = Quadratic(problem, fit, candidates & ~fit.system.free)
         base = _bic(fit, s2, price)
         trial = _first_better(problem, fit, model, model.moves(price, s2), base, s2, price,
                               tabu)
@@ -128,7 +125,7 @@ def ambiguities(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS, same
     (:func:`.gauge.same_up_to_shift`): no ambiguity. Returns [(move, change)], at most
     ``limit`` tried, most plausible first."""
     s2 = max(fit.residual_variance, 1.0)
-    model = _Quadratic(problem, fit, candidates & ~fit.system.free)
+    model = Quadratic(problem, fit, candidates & ~fit.system.free)
     found = []
     tried = 0
     moves = [m for m in model.moves(0.0, s2) if m[1][0] in ("swap", "merge")]
@@ -154,7 +151,7 @@ def weak_terms(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS):
     [(cell, change, bar)], weakest first."""
     s2 = max(fit.residual_variance, 1.0)
     bar = _price(problem, fit, candidates) + EVIDENCE
-    model = _Quadratic(problem, fit, np.zeros_like(fit.system.free))
+    model = Quadratic(problem, fit, np.zeros_like(fit.system.free))
     drops = sorted((m for m in model.moves(0.0, s2) if m[1][0] == "drop"),
                    key=lambda m: -m[0])
     found = []
@@ -190,7 +187,7 @@ def missing_terms(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS):
     allowed = candidates & ~fit.system.free
     if not allowed.any():
         return []
-    model = _Quadratic(problem, fit, allowed)
+    model = Quadratic(problem, fit, allowed)
     adds = sorted(model.additions(price, s2), key=lambda m: -m[0])
     found = []
     for k, (gain, move, keep) in enumerate(adds):
@@ -239,155 +236,3 @@ def _exact_refit(problem, fit, model, keep):
             coef[cell] = value
     new = ParametricSystem(system.state_names, system.n_observed, system.features, coef, free)
     return problem.fit(new, fit.starts)
-
-
-def _solve_starts(a_ss, rhs):
-    """``a_ss^-1 rhs`` for the starts' block of the normal equations: by a sparse LU, or
-    where the block is large (long recordings: more than ``DENSE`` unknowns), through
-    its band (a segment touches only its neighbours) where it has one."""
-    if a_ss.shape[0] > DENSE:
-        try:
-            return cho_solve_banded(banded_factor(a_ss), rhs)
-        except (np.linalg.LinAlgError, ValueError):
-            pass
-    return spla.splu(a_ss.tocsc()).solve(rhs)
-
-
-class _Quadratic:
-    """The misfit around ``fit`` as a quadratic in the coefficients (current free ones
-    and the candidates at zero), starts eliminated."""
-
-    def __init__(self, problem, fit, allowed):
-        system = fit.system
-        aug = ParametricSystem(system.state_names, system.n_observed, system.features,
-                               system.coef, system.free | allowed)
-        eq = problem.equations(aug, fit.starts, np.ones(problem.n_segments), fit.rho)
-        self.cells = list(zip(*np.nonzero(aug.free), strict=True))
-        p = len(self.cells)
-        a = sps.csc_matrix(eq.matrix())
-        g = eq.grad
-        a_pp = a[:p, :p].toarray()
-        a_ps = a[:p, p:].toarray()
-        a_ss = a[p:, p:].tocsc()
-        if a_ss.shape[0]:
-            ridge = 1e-12 * max(float(a_ss.diagonal().max()), 1e-300)
-            x = _solve_starts(a_ss + ridge * sps.identity(a_ss.shape[0]),
-                              np.column_stack([a_ps.T, g[p:]]))
-            self.a = a_pp - a_ps @ x[:, :p]
-            self.g = g[:p] - a_ps @ x[:, p]
-        else:
-            self.a, self.g = a_pp, g[:p]
-        self.values = np.array([aug.coef[c] for c in self.cells], dtype=float)
-        self.current = np.array([bool(system.free[c]) for c in self.cells], dtype=bool)
-
-    def predicted(self, keep):
-        """Predicted misfit change when only ``keep`` (bool over cells) is free."""
-        return self._solve(keep)[0]
-
-    def values_after(self, keep):
-        """The coefficients (over cells) at the model's minimum with only ``keep`` free:
-        the start of the exact refit (kept terms already compensate for removed ones)."""
-        step = self._solve(keep)[1]
-        values = np.where(keep, self.values, 0.0)
-        if step is not None:
-            values[keep] += step
-        return values
-
-    def _solve(self, keep):
-        removed = self.current & ~keep
-        d_r = -self.values[removed]
-        a_kk = self.a[np.ix_(keep, keep)]
-        rhs = -(self.g[keep] + self.a[np.ix_(keep, removed)] @ d_r)
-        try:
-            d_k = np.linalg.solve(a_kk + 1e-12 * np.trace(a_kk) * np.eye(len(a_kk)), rhs) \
-                if keep.any() else np.zeros(0)
-        except np.linalg.LinAlgError:
-            return np.inf, None
-        quad = (d_k @ a_kk @ d_k + 2 * d_k @ self.a[np.ix_(keep, removed)] @ d_r
-                + d_r @ self.a[np.ix_(removed, removed)] @ d_r)
-        return float(2 * (self.g[keep] @ d_k + self.g[removed] @ d_r) + quad), d_k
-
-    def moves(self, price, s2):
-        """(BIC gain, move, keep) for every drop, addition, swap and merge, best
-        first."""
-        base = self.predicted(self.current)
-        k0 = int(self.current.sum())
-        inside = np.flatnonzero(self.current)
-        outside = np.flatnonzero(~self.current)
-        out = []
-
-        def consider(move, keep):
-            change = (self.predicted(keep) - base) / s2 + price * (int(keep.sum()) - k0)
-            out.append((-change, move, keep))
-
-        for i in inside:
-            keep = self.current.copy()
-            keep[i] = False
-            consider(("drop", self.cells[i]), keep)
-        for j in outside:
-            keep = self.current.copy()
-            keep[j] = True
-            consider(("add", self.cells[j]), keep)
-            for a, i in enumerate(inside):
-                swap = keep.copy()
-                swap[i] = False
-                consider(("swap", (self.cells[i], self.cells[j])), swap)
-                for i2 in inside[a + 1:]:
-                    merge = swap.copy()
-                    merge[i2] = False
-                    consider(("merge", ((self.cells[i], self.cells[i2]), self.cells[j])),
-                             merge)
-        out.sort(key=lambda m: -m[0])
-        return out
-
-    def additions(self, price, s2):
-        """(BIC gain, move, keep) for adding each candidate alone."""
-        base = self.predicted(self.current)
-        out = []
-        for j in np.flatnonzero(~self.current):
-            keep = self.current.copy()
-            keep[j] = True
-            change = (self.predicted(keep) - base) / s2 + price
-            out.append((-change, ("add", self.cells[j]), keep))
-        return out
-
-    def pairs(self, price, s2):
-        """(BIC gain, move, keep) for adding every two candidates of one equation
-        together, best first. A law whose terms act only together is reached this way:
-        a logistic rate ``a + b h + c h^2`` (two fixed points) from ``c h^2``, where
-        ``a`` or ``b`` alone moves a fixed point the data do not show."""
-        base = self.predicted(self.current)
-        out = []
-        for row in sorted({cell[0] for cell in self.cells}):
-            outside = [j for j in np.flatnonzero(~self.current) if self.cells[j][0] == row]
-            for b, j in enumerate(outside):
-                for j2 in outside[b + 1:]:
-                    keep = self.current.copy()
-                    keep[[j, j2]] = True
-                    change = (self.predicted(keep) - base) / s2 + 2 * price
-                    out.append((-change, ("add pair", (self.cells[j], self.cells[j2])), keep))
-        out.sort(key=lambda m: -m[0])
-        return out
-
-    def exchanges(self, s2):
-        """(gain, move, keep) for every exchange of two terms of one equation for two
-        others of that equation (the same size; misfit change only), best first."""
-        base = self.predicted(self.current)
-        rows = sorted({cell[0] for cell in self.cells})
-        out = []
-        for row in rows:
-            here = np.array([cell[0] == row for cell in self.cells])
-            inside = np.flatnonzero(self.current & here)
-            outside = np.flatnonzero(~self.current & here)
-            for a, i in enumerate(inside):
-                for i2 in inside[a + 1:]:
-                    for b, j in enumerate(outside):
-                        for j2 in outside[b + 1:]:
-                            keep = self.current.copy()
-                            keep[[i, i2]] = False
-                            keep[[j, j2]] = True
-                            move = ("exchange", ((self.cells[i], self.cells[i2]),
-                                                 (self.cells[j], self.cells[j2])))
-                            out.append((-(self.predicted(keep) - base) / s2, move, keep))
-        out.sort(key=lambda m: -m[0])
-        return out
