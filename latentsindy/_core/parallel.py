@@ -12,12 +12,18 @@ each item is computed the same way wherever it runs (on one torch thread in both
 The helper is used only where it is safe and pays (:func:`available`): on Linux (fork),
 from the main thread (so two maps never race; a fork copies only the calling thread,
 and the helper touches nothing the others hold), with torch on one thread, a second
-core in the process's affinity mask, at least two items, not inside another forked
-map (nor in the helper itself), and not where switched off (:func:`enable`:
+core in the process's affinity mask, at least two items, and not where switched off
+(:func:`enable`:
 ``discover_many``'s workers and the benchmarks' processes each have a core of their
 own; :func:`map_on` keeps it off for a CUDA device, whose context does not survive a
 fork, and no helper is forked once this process has a CUDA context at all; a user
 running calls side by side sets ``LATENTSINDY_SECOND_PROCESS=0``).
+A map inside an item of another (a hypothesis's held-out folds, its term selection's
+refits) runs as a loop while the other process of the outer map works; once that one
+has nothing left (the parent waits on the helper's last item, or the helper has
+finished its share while the parent's last item runs), the inner map forks a helper
+of its own, so the idle core takes inner items: two processes work at any time, and
+maps nest at most two deep.
 Whatever goes wrong in the helper (an exception, a result that does not pickle, a
 crash, no answer in ``patience`` seconds) costs time only: the parent computes the
 helper's items itself, so an error is raised by the parent, from the first item (in
@@ -45,8 +51,12 @@ from .timing import stage
 
 _WAIT_STAGE = "waiting for the second process"
 _MAX_ITEMS = 1024  # the queue's item indices fit in one atomic pipe write (PIPE_BUF)
+_MAX_DEPTH = 2  # an outer map and one inner map fork; a third level loops
+_PARENT_IDLE, _HELPER_DONE = 0, 1  # a map's shared flags: the parent waits, the helper ended
 _enabled = True
-_busy = False  # inside a forked map, in the parent or the helper: nested maps loop
+_depth = 0  # forked maps this process is inside, as their parent or their helper
+_flags: mmap.mmap | None = None  # the innermost one's shared flags
+_side = _PARENT_IDLE  # which of its flags is this process's own: the other is its partner
 
 
 def enable(flag: bool) -> bool:
@@ -59,7 +69,8 @@ def enable(flag: bool) -> bool:
 
 def available(n_items: int) -> bool:
     """Whether :func:`forked_map` would use a helper for ``n_items`` items."""
-    if (not _enabled or _busy or not 2 <= n_items <= _MAX_ITEMS or sys.platform != "linux"
+    if (not _enabled or not 2 <= n_items <= _MAX_ITEMS or sys.platform != "linux"
+            or not _partner_idle()
             or os.environ.get("LATENTSINDY_SECOND_PROCESS", "1") == "0"
             or threading.current_thread() is not threading.main_thread()
             or torch.get_num_threads() != 1
@@ -68,6 +79,17 @@ def available(n_items: int) -> bool:
             or torch.cuda.is_initialized()):
         return False
     return len(os.sched_getaffinity(0)) >= 2
+
+
+def _partner_idle() -> bool:
+    """Outside any forked map, True; inside one (an inner map), whether the other
+    process of the innermost map has nothing left to do, and nesting may go deeper."""
+    if _depth == 0:
+        return True
+    if _depth >= _MAX_DEPTH or _flags is None:
+        return False
+    partner = _HELPER_DONE if _side == _PARENT_IDLE else _PARENT_IDLE
+    return _flags[partner] == 1
 
 
 def map_on(device, func, items, cost=None) -> list:
@@ -107,15 +129,16 @@ def forked_map(func, items, patience: float = 60.0, cost=None) -> list:
         os.write(queue_w, b"".join(struct.pack("i", k) for k in queue))
         os.close(queue_w)
         opened.remove(queue_w)
+        flags = mmap.mmap(-1, 2)  # shared with the helper: zero, zero
         pid = _fork()
     except OSError:  # no pipe or no process to be had: the loop
         for fd in opened:
             os.close(fd)
         return [func(x) for x in items]
     if pid == 0:
-        _helper(func, items, queue_r, result_r, result_w)  # never returns
+        _helper(func, items, queue_r, result_r, result_w, flags)  # never returns
     os.close(result_w)
-    return _share(func, items, queue, pid, queue_r, result_r, patience)
+    return _share(func, items, queue, pid, queue_r, result_r, patience, flags)
 
 
 def shared_values(n: int) -> np.ndarray:
@@ -147,21 +170,23 @@ def _fork():
     return pid
 
 
-def _share(func, items, queue, pid, queue_r, result_r, patience):
+def _share(func, items, queue, pid, queue_r, result_r, patience, flags):
     """The parent's side: its own items, then the helper's results."""
-    global _busy
-    _busy = True
+    global _depth, _flags, _side
+    outer = _depth, _flags, _side
+    _depth, _flags, _side = _depth + 1, flags, _PARENT_IDLE
     results, helper = {}, {}
     try:
         start = time.perf_counter()
         while (k := _take(queue_r)) is not None:
             results[k] = func(items[k])
         own = time.perf_counter() - start
+        flags[_PARENT_IDLE] = 1  # the helper's inner maps may fork from now on
         with stage(_WAIT_STAGE):
             helper = _collect(pid, result_r, patience + 20.0 * own)
         pid = None  # reaped (or stopped) by _collect
     finally:
-        _busy = False
+        _depth, _flags, _side = outer
         os.close(queue_r)
         os.close(result_r)
         if pid is not None:  # the parent's own item raised: stop the helper
@@ -181,13 +206,13 @@ def _take(fd):
     return struct.unpack("i", data)[0] if len(data) == 4 else None
 
 
-def _helper(func, items, queue_r, result_r, result_w):
+def _helper(func, items, queue_r, result_r, result_w, flags):
     """The helper's life: take items until the queue is empty (or one fails, or the
     parent is gone), send the results, exit without the parent's exit handlers."""
-    global _busy
+    global _depth, _flags, _side
     try:
         os.close(result_r)
-        _busy = True
+        _depth, _flags, _side = _depth + 1, flags, _HELPER_DONE
         parent = os.getppid()
         torch.set_num_threads(1)  # as in the parent (available() asks for it)
         done = {}
@@ -196,6 +221,7 @@ def _helper(func, items, queue_r, result_r, result_w):
                 done[k] = func(items[k])
             except BaseException:  # noqa: BLE001 - the parent recomputes it and raises
                 break
+        flags[_HELPER_DONE] = 1  # the parent's inner maps may fork from now on
         try:
             payload = pickle.dumps(done, protocol=pickle.HIGHEST_PROTOCOL)
         except Exception:  # noqa: BLE001 - an unpicklable result: the parent does all

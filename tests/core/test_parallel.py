@@ -178,17 +178,53 @@ def test_the_parents_wait_is_a_stage_of_its_own(started):
     assert times["waiting for the second process"] > 0.3
 
 
-@needs_two_cores
-def test_nested_maps_run_as_loops(started):
-    def inner(x):
-        started.mark()
-        started.wait()
-        return forked_map(lambda y: os.getpid(), range(3))
+def _wait_for(condition, seconds=10.0):
+    deadline = time.monotonic() + seconds
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    return condition()
 
-    outer = forked_map(inner, range(4))
-    assert started.seen()
-    for pids in outer:
-        assert len(set(pids)) == 1  # each inner map ran in one process
+
+@needs_two_cores
+def test_inner_maps_loop_while_the_other_process_works(tmp_path, no_helper_left):
+    def outer(x):
+        (tmp_path / f"began-{x}").touch()
+        _wait_for(lambda: all((tmp_path / f"began-{y}").exists() for y in range(2)))
+        pids = forked_map(lambda y: os.getpid(), range(3))  # the other is mid-item
+        (tmp_path / f"ended-{x}").touch()
+        _wait_for(lambda: all((tmp_path / f"ended-{y}").exists() for y in range(2)))
+        return pids, os.getpid()
+
+    out = forked_map(outer, range(2))
+    assert len({pid for _, pid in out}) == 2  # one item in each process
+    for pids, pid in out:
+        assert pids == [pid] * 3  # each inner map ran as a loop in its own process
+
+
+@needs_two_cores
+def test_an_inner_map_takes_the_idle_core(tmp_path, no_helper_left):
+    def outer(x):
+        if x == 0:
+            return "quick", os.getpid()
+        # the long item: once the other process has nothing left, its core is free
+        assert _wait_for(parallel._partner_idle)
+
+        def inner(y):
+            (tmp_path / f"inner-{y}-{os.getpid()}").touch()
+            _wait_for(lambda: len(list(tmp_path.glob("inner-*"))) >= 2)
+            assert not available(2)  # a third level loops
+            return y * y, os.getpid()
+
+        return forked_map(inner, range(4)), os.getpid()
+
+    for _ in range(3):  # the long item lands in either process
+        for path in tmp_path.glob("inner-*"):
+            path.unlink()
+        quick, long = forked_map(outer, range(2))
+        assert quick[0] == "quick"
+        inner, pid = long
+        assert [v for v, _ in inner] == [0, 1, 4, 9]  # in order, the loop's values
+        assert pid in {p for _, p in inner} and len({p for _, p in inner}) == 2
 
 
 @needs_two_cores
