@@ -33,6 +33,7 @@ the parent's order of work) that fails there.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import mmap
 import os
 import pickle
@@ -51,6 +52,7 @@ from .timing import stage
 
 _WAIT_STAGE = "waiting for the second process"
 _MAX_ITEMS = 1024  # the queue's item indices fit in one atomic pipe write (PIPE_BUF)
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
 _MAX_DEPTH = 2  # an outer map and one inner map fork; a third level loops
 _PARENT_IDLE, _HELPER_DONE = 0, 1  # a map's shared flags: the parent waits, the helper ended
 _enabled = True
@@ -159,15 +161,28 @@ def _fork():
     sys.stdout.flush()
     sys.stderr.flush()
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    parent = os.getpid()
     try:
         with warnings.catch_warnings():  # Python >= 3.12 warns on forking with threads
             warnings.simplefilter("ignore", DeprecationWarning)
             pid = os.fork()
         if pid == 0:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
+            _die_with_parent(parent)
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
     return pid
+
+
+def _die_with_parent(parent):
+    """In a helper: be killed when the process that forked it ends (Linux's
+    PR_SET_PDEATHSIG), so that an inner map's helper never outlives the outer map's
+    helper that forked it (stopped at its patience, or killed by the system), nor
+    holds the outer map's result pipe open after it."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL))
+    if os.getppid() != parent:  # ``parent`` ended before the request was made
+        os._exit(0)
 
 
 def _share(func, items, queue, pid, queue_r, result_r, patience, flags):

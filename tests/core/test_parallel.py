@@ -6,6 +6,7 @@ its first item.
 """
 
 import os
+import signal
 import sys
 import time
 
@@ -225,6 +226,45 @@ def test_an_inner_map_takes_the_idle_core(tmp_path, no_helper_left):
         inner, pid = long
         assert [v for v, _ in inner] == [0, 1, 4, 9]  # in order, the loop's values
         assert pid in {p for _, p in inner} and len({p for _, p in inner}) == 2
+
+
+def _alive(pid):
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().split()[2] != "Z"  # a zombie has ended
+    except FileNotFoundError:
+        return False
+
+
+@needs_two_cores
+def test_an_inner_helper_dies_with_the_helper_that_forked_it(started, tmp_path,
+                                                             no_helper_left):
+    def inner(y):
+        (tmp_path / f"inner-{os.getpid()}").touch()
+        time.sleep(5.0)
+        return y
+
+    def outer(x):
+        if os.getpid() == PARENT:
+            started.wait()
+            return "parent"
+        started.mark()
+        assert _wait_for(parallel._partner_idle)
+        helper = os.getpid()
+        if os.fork() == 0:  # stands in for the system killing the helper mid-item
+            time.sleep(0.5)
+            os.kill(helper, signal.SIGKILL)
+            os._exit(0)
+        return forked_map(inner, range(2))
+
+    begin = time.perf_counter()
+    assert forked_map(outer, range(2)) == ["parent", "parent"]  # the parent redid it
+    # the inner map's helper was killed with the helper, which held the outer map's
+    # result pipe: the parent did not wait for its 5-s item
+    assert time.perf_counter() - begin < 3.0
+    inner_pids = {int(p.name.split("-")[1]) for p in tmp_path.glob("inner-*")}
+    assert len(inner_pids) == 2  # the helper and its own helper each took an item
+    assert _wait_for(lambda: not any(_alive(pid) for pid in inner_pids), 2.0)
 
 
 @needs_two_cores

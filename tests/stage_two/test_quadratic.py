@@ -70,3 +70,20 @@ def test_moves_are_listed_and_ranked_as_one_at_a_time():
     exchanges = model.exchanges(s2)
     assert all(g == -(model.predicted(keep) - base) / s2 for g, _, keep in exchanges)
     assert [g for g, _, _ in exchanges] == sorted((g for g, _, _ in exchanges), reverse=True)
+
+
+def test_large_stacks_are_split_and_nothing_changes(monkeypatch):
+    from latentsindy._stage_two.fit import quadratic
+
+    rng = np.random.default_rng(11)
+    model = _model(rng, 20, 0.5)
+    keeps = []
+    for _ in range(200):
+        keep = model.current.copy()
+        flip = rng.integers(0, 20, rng.integers(0, 3))
+        keep[flip] = ~keep[flip]
+        keeps.append(keep)
+    whole = model.predicted_many(keeps)
+    monkeypatch.setattr(quadratic, "STACK", 50)  # a set or two per stack
+    np.testing.assert_array_equal(_bits(model.predicted_many(keeps)), _bits(whole))
+    assert model.predicted_many(np.zeros((0, 20), dtype=bool)).shape == (0,)

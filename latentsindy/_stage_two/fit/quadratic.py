@@ -24,6 +24,7 @@ from .field import ParametricSystem
 from .normal_equations import DENSE, banded_factor
 
 RIDGE = 1e-12  # of the trace, on the kept block's diagonal: a singular block still solves
+STACK = 1 << 19  # matrix entries in one stack of sets (4 MB of float64 a copy)
 
 
 def solve_starts(a_ss, rhs):
@@ -72,19 +73,26 @@ class Quadratic:
     def predicted_many(self, keeps):
         """:meth:`predicted` of each row of ``keeps`` (bool, sets x cells), the same to
         the bit, the sets of one size and one count of removed cells side by side."""
-        keeps = np.asarray(keeps, dtype=bool).reshape(-1, len(self.cells))
+        keeps = np.atleast_2d(np.asarray(keeps, dtype=bool))
         out = np.empty(len(keeps))
+        if not len(keeps):
+            return out
         removed = self.current & ~keeps
         sizes = np.stack([keeps.sum(axis=1), removed.sum(axis=1)], axis=1)
         shapes, which = np.unique(sizes, axis=0, return_inverse=True)
         for s, (n_keep, n_removed) in enumerate(shapes):
-            rows = np.flatnonzero(which.reshape(-1) == s)
-            kept = np.nonzero(keeps[rows])[1].reshape(len(rows), n_keep)
-            gone = np.nonzero(removed[rows])[1].reshape(len(rows), n_removed)
-            try:
-                out[rows] = self._stacked(kept, gone)
-            except np.linalg.LinAlgError:  # a singular set in the stack: one at a time
-                out[rows] = [self.predicted(keeps[r]) for r in rows]
+            # stacks of at most STACK matrix entries: memory stays a few MB however
+            # many sets a large library makes
+            per_set = (n_keep + n_removed) ** 2 + 1
+            every = np.flatnonzero(which.reshape(-1) == s)
+            stacks = min(len(every), -(-len(every) * per_set // STACK))
+            for rows in np.array_split(every, stacks):
+                kept = np.nonzero(keeps[rows])[1].reshape(len(rows), n_keep)
+                gone = np.nonzero(removed[rows])[1].reshape(len(rows), n_removed)
+                try:
+                    out[rows] = self._stacked(kept, gone)
+                except np.linalg.LinAlgError:  # a singular set in the stack: one at a time
+                    out[rows] = [self.predicted(keeps[r]) for r in rows]
         return out
 
     def values_after(self, keep):
