@@ -266,16 +266,16 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
                                     support, THRESHOLD))
     index = [(names.index(s), first.feature_names.index(f)) for s, f in pairs]
     blind = False  # stage one saw no law where the data move
+    alone = False  # the law without hidden states judged alone, carriers on its score
     if not pairs:  # the observed states close on their own, or no law is found
         proposals = [without_hidden(first.support, ctx)]
         if hidden_terms is None and (panel or blind_path.misfit(
                 proposals[0], ctx, refine, device) > blind_path.MOVES):
             # they do not close on their own: stage two looks for a hidden carrier itself
-            blind = blind_path.no_terms(first.support, ctx)
-            if blind and not panel:
-                ctx = context_build.as_measured(ctx, fits[0].library_)
-                proposals = [without_hidden(first.support, ctx)]
-            proposals += blind_path.carriers(ctx, first.support, fuller=refine)
+            ctx, proposals, blind = blind_path.with_carriers(
+                ctx, proposals, first.support, fits[0].library_, panel, refine)
+        else:
+            alone = hidden_terms is None
     elif hidden_terms is None:
         series = np.stack([np.concatenate([c.term(s, f) for c in coefs]) for s, f in pairs],
                           axis=1)
@@ -287,6 +287,11 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
         with single_thread():
             ordered, uncertain = judge_all(proposals, ctx, RefineOptions(device=device), max_hidden,
                                            NESTED, blind=bool(blind))
+            if alone and not blind_path.reproduced(ordered) and not expired():
+                ctx, proposals, blind = blind_path.with_carriers(
+                    ctx, proposals, first.support, fits[0].library_, panel, refine)
+                ordered, uncertain = judge_all(proposals, ctx, RefineOptions(device=device),
+                                               max_hidden, NESTED, blind=bool(blind))
             if ordered:
                 result = from_verdicts(ordered, uncertain, ctx, first, hidden_names,
                                        blind_path.note(panel) if blind else None)
