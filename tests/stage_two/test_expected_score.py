@@ -220,6 +220,22 @@ def test_a_law_found_without_stage_one_is_doubted_only_when_it_keeps_every_term(
     assert "16 samples between gaps" in doubt
 
 
+def test_nothing_hidden_stands_alone_only_while_its_score_reproduces_the_data():
+    """The law without hidden states, judged alone, stands at scores up to 1 +
+    REPRODUCTION_SLACK, read as they stand (not within two standard errors); above, or
+    unscored, or with nothing judged, the carriers are judged beside it."""
+    def judged(cv, se=0.01, scored=True):
+        return [SimpleNamespace(cv=cv, cv_se=se, scored=scored)]
+
+    limit = 1.0 + blind_path.REPRODUCTION_SLACK
+    assert blind_path.reproduced(judged(0.97))
+    assert blind_path.reproduced(judged(limit))
+    assert not blind_path.reproduced(judged(limit + 1e-9))
+    assert not blind_path.reproduced(judged(1.45, se=0.46))  # 1.45 - 2 se would pass
+    assert not blind_path.reproduced(judged(0.97, scored=False))
+    assert not blind_path.reproduced([])
+
+
 def test_simulated_noise_has_the_estimated_level_and_correlation():
     """White where no correlation was read; AR(1) with phi per median step, decaying
     as phi^(gap / step) across a longer gap."""
