@@ -18,7 +18,7 @@ import pysindy as ps
 
 from .._core import recordings
 from .._core import validation as val
-from .._core.budget import budget, expired
+from .._core.budget import budget, expired, spent
 from .._core.derivatives import (
     AdaptiveSavitzkyGolay,
     noise_level,
@@ -287,11 +287,14 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
         with single_thread():
             ordered, uncertain = judge_all(proposals, ctx, RefineOptions(device=device), max_hidden,
                                            NESTED, blind=bool(blind))
-            if alone and not blind_path.reproduced(ordered) and not expired():
-                ctx, proposals, blind = blind_path.with_carriers(
-                    ctx, proposals, first.support, fits[0].library_, panel, refine)
-                ordered, uncertain = judge_all(proposals, ctx, RefineOptions(device=device),
-                                               max_hidden, NESTED, blind=bool(blind))
+            if alone and not blind_path.reproduced(ordered) and not spent(blind_path.BESIDE):
+                more = blind_path.with_carriers(ctx, proposals, first.support,
+                                                fits[0].library_, panel, refine)
+                again = judge_all(more[1], more[0], RefineOptions(device=device), max_hidden,
+                                  NESTED, blind=bool(more[2]))
+                # (where max_time left the second without a scored winner, the first stands)
+                if (again[0] and again[0][0].scored) or not (ordered and ordered[0].scored):
+                    (ctx, proposals, blind), (ordered, uncertain) = more, again
             if ordered:
                 result = from_verdicts(ordered, uncertain, ctx, first, hidden_names,
                                        blind_path.note(panel) if blind else None)

@@ -50,11 +50,16 @@ def misfit(proposal, ctx, refine, device) -> float:
     return np.inf if trial is None else trial.fit.residual_variance
 
 
+# The step :func:`reproduced` adds, as ``max_time`` names it when it is left out.
+BESIDE = "hidden carriers beside the law without hidden states"
+
+
 def with_carriers(ctx, proposals, support, library, panel, fuller):
-    """``proposals`` (the law without hidden states first) with every library term as a
-    hidden carrier (:func:`carriers`), the context they are judged in, and whether stage
-    one saw no law where the data move (:func:`no_terms`: the context is then the data
-    as measured and the law without hidden states is fitted again there)."""
+    """(context, proposals, blind): ``proposals`` (the law without hidden states first)
+    with every library term as a hidden carrier (:func:`carriers`), the context they
+    are judged in, and whether stage one saw no law where the data move
+    (:func:`no_terms`: outside a panel the context is then the data as measured, and
+    the law without hidden states is fitted again there)."""
     blind = no_terms(support, ctx)
     if blind and not panel:
         ctx = context_build.as_measured(ctx, library)
@@ -73,9 +78,12 @@ def reproduced(ordered) -> bool:
     (Lorenz seen through x and z at 5% noise, one wing, draw 9: a two-state law of x and
     z at 1.45 +- 0.46, where a right system's standard error here is about 0.025; two
     competing species seen through x, a logistic law at 1.27 +- 0.06), and the doubt's
-    two-standard-error test passed both with confidence. Above it the carriers are
-    judged beside it: the law without hidden states still wins where it scores as well
-    (it is the smallest), and nothing is lost but time."""
+    two-standard-error test passed both with confidence. Above it (or unscored) the
+    carriers are judged beside it and ranked with it as any hypotheses are: it wins
+    where the held-out data do not reject it (it is the smallest), and is then
+    reported as before (confident when its checks pass); carriers that the paired
+    errors favour make it uncertain. A right law scoring above 1.15 (short or sparse
+    recordings, where a right system's reference is 1-2.3) pays the carriers' time."""
     return bool(ordered and ordered[0].scored
                 and ordered[0].cv <= 1.0 + REPRODUCTION_SLACK)
 

@@ -396,3 +396,9 @@ def test_nothing_hidden_is_not_confident_where_it_misses_held_out_data(monkeypat
     monkeypatch.setattr(without_stage_one, "reproduced", lambda ordered: True)
     before = discover_hidden(x, ps.PolynomialLibrary(degree=2), t=t, verbose=False)
     assert before.hidden_names == () and before.confident, before.summary()
+    # a second judgement without a scored winner (max_time spent in it) leaves the first
+    monkeypatch.undo()
+    monkeypatch.setattr(discover, "judge_all", lambda proposals, *args, **kwargs: (
+        judge_all(proposals, *args, **kwargs) if len(proposals) == 1 else ([], [])))
+    kept = discover_hidden(x, ps.PolynomialLibrary(degree=2), t=t, verbose=False)
+    assert kept.summary() == before.summary()
