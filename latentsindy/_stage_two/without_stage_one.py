@@ -13,6 +13,9 @@ keeps every closure term (:func:`saturated`: no sparse law, the sign of a wrong
 carrier's approximation), and the ``weak check`` doubt when the held-out check has
 little power on such data (a right system's simulated score above 3 noise variances,
 or not measurable: :func:`.doubts.checks.weak_check_doubts`).
+
+The same carriers are judged where stage one saw a law with no coefficient varying
+and that law, judged alone, misses held-out data (:func:`reproduced`).
 """
 
 from __future__ import annotations
