@@ -9,6 +9,8 @@ process too, and their fits come back pickled.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .vcm import ORDER
@@ -94,48 +96,73 @@ def penalty_band(q, n_knots):
     return np.stack([off2, off1, qq[j + 2] + 4 * qq[j + 1] + qq[j]])
 
 
-def selected_inverse(u: np.ndarray, chunk: int = 256) -> np.ndarray:
+def selected_inverse(u: np.ndarray) -> np.ndarray:
     """Entries of A^-1 inside the band of A = U'U, from its upper banded Cholesky factor
-    ``u`` (scipy's layout), in the same layout (Takahashi's recursion: O(n w^2) for n
-    unknowns and bandwidth w, never the dense inverse).
+    ``u`` (scipy's layout), in the same layout, never the dense inverse.
 
-    Row i of the inverse's band needs the w x w block of the inverse just below and to
-    the right of it. The block is read in place from a dense buffer that holds
-    ``chunk`` + w rows and columns of the inverse at a time (entries inside the band of
-    the rows computed so far; the rest is stale), so a row copies nothing; when the
-    recursion leaves the buffer, the w x w block it still needs is moved up with it,
-    once every ``chunk`` rows."""
-    if chunk < 1:
-        raise ValueError(f"chunk must be a positive number of rows; got {chunk!r}.")
+    Takahashi's recursion by blocks: cut the unknowns into blocks of b >= w (the
+    bandwidth), so that U is block bidiagonal with upper triangular diagonal blocks
+    D_I and couplings C_I. From U Sigma = U^-T, block row I gives
+
+        Sigma_{I,I+1} = -Y_I Sigma_{I+1,I+1},
+        Sigma_{I,I}   = P_I + Y_I Sigma_{I+1,I+1} Y_I',
+
+    with Y_I = D_I^-1 C_I and P_I = D_I^-1 D_I^-T, computed for every block at once.
+    C_I has w nonzero columns, so the only step taken block by block carries the
+    w x w corner of Sigma_{I+1,I+1}; the rest is again computed for all blocks at once.
+    O(n b^2) work in batched products, n / b steps of w x w products."""
     width, n = u.shape
     w = width - 1
-    out = np.zeros_like(u)
-    # upper[i, k - 1] = U[i, i + k], k = 1..w (zero past the last unknown)
-    upper = np.zeros((n, w))
-    for k in range(1, min(w, n - 1) + 1):
-        upper[: n - k, k - 1] = u[w - k, k:]
-    span = min(chunk + w, n)
-    buffer = np.zeros((span, span))  # buffer[p, q] = Sigma[base + p, base + q] in the band
-    base = n - span
-    right = np.zeros((n, w))  # right[i, k - 1] = Sigma[i, i + k]
-    for i in range(n - 1, -1, -1):
-        if i < base:  # the buffer moves up by `shift` rows, the block below row i with it
-            shift = min(chunk, base)
-            block = buffer[:w, :w].copy()
-            base -= shift
-            buffer[shift:shift + w, shift:shift + w] = block
-        m = min(w, n - 1 - i)
-        uii = u[w, i]
-        row_u = upper[i, :m]
-        p = i - base
-        window = buffer[p + 1:p + 1 + m, p + 1:p + 1 + m]  # Sigma[i+1 .. i+m] squared
-        row = -(row_u @ window) / uii  # Sigma[i, i+1 .. i+m]
-        sii = 1.0 / uii**2 - float(row_u @ row) / uii
-        out[w, i] = sii
-        right[i, :m] = row
-        buffer[p, p] = sii
-        buffer[p, p + 1:p + 1 + m] = row
-        buffer[p + 1:p + 1 + m, p] = row
-    for k in range(1, min(w, n - 1) + 1):
-        out[w - k, k:] = right[: n - k, k - 1]
-    return out
+    if w == 0 or n == 0:
+        return 1.0 / u**2
+    block = w * max(1, -(-_MIN_BLOCK // w))
+    n_blocks, total, d_at, c_at, out_at = _block_plan(n, w, block)
+    padded = np.zeros((width, total))  # the identity past the last unknown
+    padded[:, :n] = u
+    padded[w, n:] = 1.0
+    flat = np.append(padded.reshape(-1), 0.0)  # the last slot: a zero
+    d_inv = np.linalg.inv(flat[d_at])  # (blocks, b, b), upper triangular
+    p = d_inv @ np.swapaxes(d_inv, 1, 2)
+    y = d_inv[:, :, block - w:] @ flat[c_at]  # (blocks, b, w): C_I's nonzero columns
+    corner = np.empty((n_blocks, w, w))  # Sigma_{I,I}'s top left w x w
+    corner[-1] = s = p[-1, :w, :w]
+    for i in range(n_blocks - 2, -1, -1):
+        top = y[i, :w]
+        s = p[i, :w, :w] + top @ s @ top.T
+        corner[i] = s
+    diagonal = p.copy()
+    diagonal[:-1] += y[:-1] @ corner[1:] @ np.swapaxes(y[:-1], 1, 2)
+    coupling = np.zeros((n_blocks, w, w))  # Sigma_{I,I+1}: last w rows, first w columns
+    coupling[:-1] = -(y[:-1, block - w:] @ corner[1:])
+    source = np.concatenate([diagonal.reshape(-1), coupling.reshape(-1), [0.0]])
+    return source[out_at]
+
+
+_MIN_BLOCK = 16  # rows per block at least: fewer block steps on narrow bands
+
+
+@functools.lru_cache(maxsize=32)
+def _block_plan(n, w, block):
+    """Where :func:`selected_inverse` reads its blocks from the flattened padded band
+    and where each output entry comes from (index arrays; -1 reads a zero)."""
+    n_blocks = -(-n // block)
+    total = n_blocks * block + block  # padded columns: one spare block for C_I
+    starts = np.arange(n_blocks)[:, None, None] * block
+    p, q = np.arange(block)[:, None], np.arange(block)[None, :]
+    off = q - p  # D_I[p, q] = U[Ib + p, Ib + q] = band[w - off, Ib + q]
+    d_at = np.where((off >= 0) & (off <= w), (w - off) * total + starts + q, -1)
+    pc, qc = np.arange(w)[:, None] + (block - w), np.arange(w)[None, :]
+    off = block + qc - pc  # C_I[pc, qc] = U[Ib + pc, (I+1)b + qc]
+    c_at = np.where(off <= w, (w - off) * total + starts + block + qc, -1)
+    col = np.arange(n)
+    blk, q = col // block, col % block
+    k = np.arange(w, -1, -1)[:, None]  # output row w - k holds Sigma[j - k, j]
+    inside = q - k >= 0
+    from_diagonal = blk * block * block + (q - k) * block + q
+    from_coupling = (n_blocks * block * block + (blk - 1) * w * w
+                     + (w + q - k) * w + q)
+    below = ~inside & (blk >= 1) & (q < w)
+    out_at = np.where(inside, from_diagonal, np.where(below, from_coupling, -1))
+    for a in (d_at, c_at, out_at):
+        a.setflags(write=False)
+    return n_blocks, total, d_at, c_at, out_at
