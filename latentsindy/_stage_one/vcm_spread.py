@@ -10,6 +10,7 @@ process too, and their fits come back pickled.
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import numpy as np
 
@@ -116,53 +117,66 @@ def selected_inverse(u: np.ndarray) -> np.ndarray:
     if w == 0 or n == 0:
         return 1.0 / u**2
     block = w * max(1, -(-_MIN_BLOCK // w))
-    n_blocks, total, d_at, c_at, out_at = _block_plan(n, w, block)
-    padded = np.zeros((width, total))  # the identity past the last unknown
+    n_blocks = -(-n // block)
+    padded = np.zeros((width, (n_blocks + 1) * block))  # the identity past the end
     padded[:, :n] = u
     padded[w, n:] = 1.0
-    flat = np.append(padded.reshape(-1), 0.0)  # the last slot: a zero
-    d_inv = np.linalg.inv(flat[d_at])  # (blocks, b, b), upper triangular
-    p = d_inv @ np.swapaxes(d_inv, 1, 2)
-    y = d_inv[:, :, block - w:] @ flat[c_at]  # (blocks, b, w): C_I's nonzero columns
+    blocks = padded.reshape(width, n_blocks + 1, block)  # [row, block, column in it]
+    pick = _block_patterns(w, block)
+    # D_I[p, q] = U[Ib + p, Ib + q]; C_I: rows b - w.. of block I, columns ..w of I + 1
+    d = np.moveaxis(blocks[pick.d_rows, :n_blocks, pick.d_cols], -1, 0) * pick.d_in
+    c = np.moveaxis(blocks[pick.c_rows, 1:, pick.c_cols], -1, 0) * pick.c_in
+    d_inv = np.linalg.inv(d)  # (blocks, b, b), upper triangular
+    diagonal = d_inv @ np.swapaxes(d_inv, 1, 2)  # P_I, then Sigma_{I,I}
+    y = d_inv[:, :, block - w:] @ c  # (blocks, b, w): C_I's nonzero columns
     corner = np.empty((n_blocks, w, w))  # Sigma_{I,I}'s top left w x w
-    corner[-1] = s = p[-1, :w, :w]
+    corner[-1] = s = diagonal[-1, :w, :w]
     for i in range(n_blocks - 2, -1, -1):
         top = y[i, :w]
-        s = p[i, :w, :w] + top @ s @ top.T
+        s = diagonal[i, :w, :w] + top @ s @ top.T
         corner[i] = s
-    diagonal = p.copy()
     diagonal[:-1] += y[:-1] @ corner[1:] @ np.swapaxes(y[:-1], 1, 2)
-    coupling = np.zeros((n_blocks, w, w))  # Sigma_{I,I+1}: last w rows, first w columns
-    coupling[:-1] = -(y[:-1, block - w:] @ corner[1:])
-    source = np.concatenate([diagonal.reshape(-1), coupling.reshape(-1), [0.0]])
-    return source[out_at]
+    coupling = -(y[:-1, block - w:] @ corner[1:])  # Sigma_{I,I+1}'s corner that matters
+    # output row w - k, column Ib + q: Sigma[Ib + q - k, Ib + q], from block I's diagonal
+    # block where q >= k, else from the coupling of block I - 1
+    out = np.where(pick.inside, diagonal[:, pick.o_rows, pick.o_cols], 0.0)
+    out[1:] += np.where(pick.below, coupling[:, pick.r_rows, pick.r_cols], 0.0)
+    return np.moveaxis(out, 0, 1).reshape(width, n_blocks * block)[:, :n]
 
 
 _MIN_BLOCK = 16  # rows per block at least: fewer block steps on narrow bands
 
 
-@functools.lru_cache(maxsize=32)
-def _block_plan(n, w, block):
-    """Where :func:`selected_inverse` reads its blocks from the flattened padded band
-    and where each output entry comes from (index arrays; -1 reads a zero)."""
-    n_blocks = -(-n // block)
-    total = n_blocks * block + block  # padded columns: one spare block for C_I
-    starts = np.arange(n_blocks)[:, None, None] * block
+class _Patterns(NamedTuple):
+    d_rows: np.ndarray
+    d_cols: np.ndarray
+    d_in: np.ndarray
+    c_rows: np.ndarray
+    c_cols: np.ndarray
+    c_in: np.ndarray
+    o_rows: np.ndarray
+    o_cols: np.ndarray
+    inside: np.ndarray
+    r_rows: np.ndarray
+    r_cols: np.ndarray
+    below: np.ndarray
+
+
+@functools.lru_cache(maxsize=16)
+def _block_patterns(w, block):
+    """Where :func:`selected_inverse` reads within a block (the same for every block):
+    the band rows and columns of D_I and C_I, and the output's sources (b x b index
+    arrays at most, whatever the number of unknowns)."""
     p, q = np.arange(block)[:, None], np.arange(block)[None, :]
-    off = q - p  # D_I[p, q] = U[Ib + p, Ib + q] = band[w - off, Ib + q]
-    d_at = np.where((off >= 0) & (off <= w), (w - off) * total + starts + q, -1)
+    off = q - p  # D_I[p, q] = band[w - off, Ib + q]
+    d_in = (off >= 0) & (off <= w)
     pc, qc = np.arange(w)[:, None] + (block - w), np.arange(w)[None, :]
-    off = block + qc - pc  # C_I[pc, qc] = U[Ib + pc, (I+1)b + qc]
-    c_at = np.where(off <= w, (w - off) * total + starts + block + qc, -1)
-    col = np.arange(n)
-    blk, q = col // block, col % block
-    k = np.arange(w, -1, -1)[:, None]  # output row w - k holds Sigma[j - k, j]
-    inside = q - k >= 0
-    from_diagonal = blk * block * block + (q - k) * block + q
-    from_coupling = (n_blocks * block * block + (blk - 1) * w * w
-                     + (w + q - k) * w + q)
-    below = ~inside & (blk >= 1) & (q < w)
-    out_at = np.where(inside, from_diagonal, np.where(below, from_coupling, -1))
-    for a in (d_at, c_at, out_at):
-        a.setflags(write=False)
-    return n_blocks, total, d_at, c_at, out_at
+    off_c = block + qc - pc  # C_I[pc, qc] = band[w - off_c, (I + 1) b + qc]
+    c_in = off_c <= w
+    k, col = np.arange(w, -1, -1)[:, None], np.arange(block)[None, :]
+    inside = col - k >= 0
+    return _Patterns(np.where(d_in, w - off, 0), np.broadcast_to(q, off.shape), d_in,
+                     np.where(c_in, w - off_c, 0), np.broadcast_to(qc, off_c.shape), c_in,
+                     np.where(inside, col - k, 0), np.broadcast_to(col, inside.shape),
+                     inside, np.where(inside, 0, w + col - k), np.where(inside, 0, col),
+                     ~inside)
