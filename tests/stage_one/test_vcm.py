@@ -30,19 +30,24 @@ def _band_of(a, w):
 
 
 @pytest.mark.parametrize("n, w", [(40, 5), (41, 3), (33, 16), (70, 20), (41, 0), (3, 5),
-                                  (1, 2), (16, 4), (17, 4), (100, 1)])
+                                  (1, 2), (16, 4), (17, 4), (100, 1), (61, 15)])
 def test_selected_inverse_matches_the_dense_inverse(n, w):
     """Blocks of 16 rows and of w (w >= 16), a last block cut short or whole, a band
-    wider than the matrix and a diagonal one."""
+    wider than the matrix and a diagonal one; NaN in the factor's unused corner (outside
+    the matrix) changes nothing."""
     rng = np.random.default_rng(0)
     mask = np.abs(np.subtract.outer(np.arange(n), np.arange(n))) <= w
     b = rng.normal(size=(n, n))
     a = (b + b.T) * mask
     a += np.eye(n) * (np.abs(a).sum(axis=1).max() + 1)
-    inv = selected_inverse(cholesky_banded(_band_of(a, w)))
+    u = cholesky_banded(_band_of(a, w))
+    inv = selected_inverse(u)
     dense = np.linalg.inv(a)
     for off in range(min(w, n - 1) + 1):
         np.testing.assert_allclose(inv[w - off, off:], np.diag(dense, off), atol=1e-14)
+    for off in range(1, w + 1):
+        u[w - off, :off] = np.nan
+    np.testing.assert_array_equal(selected_inverse(u), inv)
 
 
 def test_selected_inverse_is_accurate_on_an_ill_conditioned_band():
