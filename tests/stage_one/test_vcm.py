@@ -61,9 +61,7 @@ def test_selected_inverse_is_accurate_on_an_ill_conditioned_band():
     u_dense = np.triu(rng.normal(size=(n, n)) * 0.3) * (np.subtract.outer(
         np.arange(n), np.arange(n)) >= -w)
     np.fill_diagonal(u_dense, np.logspace(-4, 4, n)[rng.permutation(n)])
-    u = np.zeros((w + 1, n))
-    for off in range(w + 1):
-        u[w - off, off:] = np.diag(u_dense, off)
+    u = _band_of(u_dense, w)  # reads the upper diagonals only
     u_inv = solve_triangular(u_dense, np.eye(n))
     dense = u_inv @ u_inv.T
     inv = selected_inverse(u)
