@@ -208,95 +208,114 @@ def test_single_thread_covers_torch_and_the_blas():
     assert blas() == before and torch.get_num_threads() == torch_before
 
 
-@pytest.mark.parametrize("size", [4 * (DENSE // 16), 4 * (DENSE // 4 + 10)])
-def test_damped_solves_agree_dense_and_sparse(size):
-    """Levenberg-Marquardt's damped solve, on a dense array or a sparse matrix, is the
-    solve of the damped matrix, and leaves the matrix as it was (one point's matrix
-    serves all of its damped solves)."""
-    import scipy.sparse as sps
+def _arrow_equations(n_free, k=700, n=2, seed=2):
+    """Normal equations of ``k`` segments (free coefficients coupling everything, each
+    start its own segment and, through continuity, its neighbours'), held by blocks."""
+    rng = np.random.default_rng(seed)
+    eq = NormalEquations(n_free, k, n)
+    eq.add(rng.normal(size=(k, 9, n_free + n)), rng.normal(size=(k, 9)), np.arange(k)[:, None])
+    pairs = np.stack([np.arange(k - 1), np.arange(1, k)], axis=1)
+    eq.add(rng.normal(size=(k - 1, n, n_free + 2 * n)), rng.normal(size=(k - 1, n)), pairs)
+    return eq
+
+
+def test_damped_solves_of_small_systems_leave_the_matrix_as_it_was():
+    """Levenberg-Marquardt's damped solve of a small (dense) system is the solve of the
+    damped matrix, and leaves the matrix as it was (one point's matrix serves all of
+    its damped solves)."""
     from scipy.linalg import block_diag
 
     rng = np.random.default_rng(0)
-    blocks = [rng.normal(size=(4, 4)) for _ in range(size // 4)]
-    matrix = sps.csc_matrix(block_diag(*[b @ b.T + np.eye(4) for b in blocks]))
-    rhs, damping = rng.normal(size=size), rng.uniform(0.1, 2.0, size=size)
-    expected = np.linalg.solve(matrix.toarray() + np.diag(damping), rhs)
-    for form in (matrix, matrix.toarray()):
-        before = as_array(form).copy()
-        np.testing.assert_allclose(solve(form, rhs, damping), expected, rtol=1e-10, atol=1e-12)
-        np.testing.assert_allclose(solve(form, rhs), np.linalg.solve(before, rhs),
-                                   rtol=1e-10, atol=1e-12)
-        np.testing.assert_array_equal(as_array(form), before)
+    blocks = [rng.normal(size=(4, 4)) for _ in range(DENSE // 16)]
+    matrix = block_diag(*[b @ b.T + np.eye(4) for b in blocks])
+    rhs, damping = rng.normal(size=len(matrix)), rng.uniform(0.1, 2.0, size=len(matrix))
+    before = matrix.copy()
+    np.testing.assert_allclose(solve(matrix, rhs, damping),
+                               np.linalg.solve(before + np.diag(damping), rhs), rtol=1e-10,
+                               atol=1e-12)
+    np.testing.assert_allclose(solve(matrix, rhs), np.linalg.solve(before, rhs), rtol=1e-10,
+                               atol=1e-12)
+    np.testing.assert_array_equal(matrix, before)
 
 
 @pytest.mark.parametrize("n_free", [0, 6])
-def test_large_arrow_systems_are_solved_through_their_banded_starts(n_free):
-    """Normal equations of 400 segments (free coefficients coupling everything, each
-    start its own segment and, through continuity, its neighbours'): solved through the
-    banded starts' block and the Schur complement, damped or not, one right-hand side
-    or several, they agree with the dense solve; a block that is not banded goes to
-    the general sparse solver and agrees too."""
-    import scipy.sparse as sps
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_large_arrow_systems_are_solved_through_their_banded_starts(n_free, n):
+    """Large normal equations are held by their blocks (ArrowMatrix) and solved through
+    the banded starts' block and the Schur complement: damped or not, one right-hand
+    side or several, they agree with the dense solve and leave the matrix as it was;
+    the dense and sparse forms of the blocks are the same matrix."""
+    from latentsindy._stage_two.fit.normal_equations import ArrowMatrix
 
-    rng = np.random.default_rng(2)
-    k, n = 400, 2
-    eq = NormalEquations(n_free, k, n)
-    segs = np.arange(k)[:, None]
-    eq.add(rng.normal(size=(k, 9, n_free + n)), rng.normal(size=(k, 9)), segs)
-    pairs = np.stack([np.arange(k - 1), np.arange(1, k)], axis=1)
-    eq.add(rng.normal(size=(k - 1, n, n_free + 2 * n)), rng.normal(size=(k - 1, n)), pairs)
+    rng = np.random.default_rng(4)
+    eq = _arrow_equations(n_free, n=n)
     matrix = eq.matrix()
-    assert sps.issparse(matrix) and matrix.shape[0] > DENSE
+    assert isinstance(matrix, ArrowMatrix) and matrix.shape[0] > DENSE
     dense = matrix.toarray()
+    np.testing.assert_array_equal(dense, dense.T)
+    np.testing.assert_array_equal(matrix.tosparse().toarray(), dense)
+    np.testing.assert_array_equal(matrix.diagonal(), np.diag(dense))
     damping = rng.uniform(0.1, 2.0, size=dense.shape[0])
     rhs = rng.normal(size=(dense.shape[0], 3))
-    np.testing.assert_allclose(solve(matrix, rhs[:, 0], damping, n_free),
+    np.testing.assert_allclose(solve(matrix, rhs[:, 0], damping),
                                np.linalg.solve(dense + np.diag(damping), rhs[:, 0]),
                                rtol=1e-9, atol=1e-11)
-    np.testing.assert_allclose(solve(matrix, rhs, border=n_free), np.linalg.solve(dense, rhs),
+    np.testing.assert_allclose(solve(matrix, rhs), np.linalg.solve(dense, rhs),
                                rtol=1e-8, atol=1e-10)
-    far = sps.lil_matrix(matrix.shape)  # the first start touching the last one
-    far[n_free, -1] = far[-1, n_free] = 0.1
-    wide = (matrix + far.tocsc()).tocsc()
-    np.testing.assert_allclose(solve(wide, rhs[:, 1], damping, n_free),
-                               np.linalg.solve(wide.toarray() + np.diag(damping), rhs[:, 1]),
-                               rtol=1e-9, atol=1e-11)
+    np.testing.assert_array_equal(matrix.toarray(), dense)
 
 
-def test_term_selection_solves_large_starts_blocks_through_their_band():
-    """The starts' block of 400 segments, as term selection eliminates it: through the
-    band, the same as a sparse LU; a block that is not banded is solved by the LU."""
-    import scipy.sparse as sps
-
-    from latentsindy._stage_two.fit.quadratic import solve_starts as _solve_starts
-
-    rng = np.random.default_rng(3)
-    k, n = 400, 2
-    eq = NormalEquations(0, k, n)
-    eq.add(rng.normal(size=(k, 9, n)), rng.normal(size=(k, 9)), np.arange(k)[:, None])
-    eq.add(rng.normal(size=(k - 1, n, 2 * n)), rng.normal(size=(k - 1, n)),
-           np.stack([np.arange(k - 1), np.arange(1, k)], axis=1))
-    block = eq.matrix().tocsc()
-    rhs = rng.normal(size=(block.shape[0], 4))
-    np.testing.assert_allclose(_solve_starts(block, rhs), np.linalg.solve(block.toarray(), rhs),
+def test_an_arrow_system_whose_starts_block_is_not_positive_definite_is_solved_by_lu():
+    """Where the starts' block is indefinite (its banded Cholesky factor fails), the
+    general sparse solver gives the same solution as the dense one."""
+    eq = _arrow_equations(3, k=320)
+    matrix = eq.matrix()
+    matrix.diag[5] -= 50.0 * np.eye(2)  # indefinite, still invertible
+    dense = matrix.toarray()
+    with pytest.raises(np.linalg.LinAlgError, match="not positive definite"):
+        matrix.starts_solve(np.ones(dense.shape[0] - 3))
+    rhs = np.random.default_rng(5).normal(size=dense.shape[0])
+    np.testing.assert_allclose(solve(matrix, rhs), np.linalg.solve(dense, rhs),
                                rtol=1e-8, atol=1e-10)
-    far = sps.lil_matrix(block.shape)
-    far[0, -1] = far[-1, 0] = 0.1
-    wide = (block + far.tocsc()).tocsc()
-    np.testing.assert_allclose(_solve_starts(wide, rhs), np.linalg.solve(wide.toarray(), rhs),
-                               rtol=1e-8, atol=1e-10)
+
+
+def test_arrow_blocks_take_only_consecutive_pairs_of_segments():
+    """A block touching two segments that are not neighbours has no place in the arrow:
+    an error that says so, not a wrong matrix."""
+    eq = NormalEquations(0, 400, 2)
+    with pytest.raises(ValueError, match="consecutive"):
+        eq.add(np.ones((1, 2, 4)), np.ones((1, 2)), np.array([[0, 2]]))
+
+
+@pytest.mark.parametrize("n_free", [0, 5])
+def test_term_selection_eliminates_large_starts_blocks_through_their_band(n_free):
+    """The coefficients' Schur complement as term selection makes it, of 400 segments
+    held by blocks: the same as eliminating the starts of the dense matrix."""
+    from latentsindy._stage_two.fit.quadratic import _eliminated
+
+    eq = _arrow_equations(n_free, seed=3)
+    a, g = eq.matrix().toarray(), eq.grad
+    p = n_free
+    x = np.linalg.solve(a[p:, p:], np.column_stack([a[p:, :p], g[p:]]))
+    schur, reduced = _eliminated(eq.matrix(), g, p)
+    np.testing.assert_allclose(schur, a[:p, :p] - a[:p, p:] @ x[:, :p], rtol=1e-7, atol=1e-8)
+    np.testing.assert_allclose(reduced, g[:p] - a[:p, p:] @ x[:, p], rtol=1e-7, atol=1e-8)
+    small = _eliminated(a, g, p)  # the dense form's own path
+    np.testing.assert_allclose(small[0], schur, rtol=1e-7, atol=1e-8)
 
 
 def test_normal_equations_dense_and_sparse_assemble_the_same_system(monkeypatch):
-    """The arrow-structured J^T J and J^T r, assembled densely (small systems) and
-    sparsely (large ones), equal the products of the whole Jacobian written out."""
+    """The arrow-structured J^T J and J^T r, assembled densely (small systems) and by
+    blocks (large ones), equal the products of the whole Jacobian written out, blocks
+    that touch one segment twice in an addition included."""
     from latentsindy._stage_two.fit import normal_equations
 
     rng = np.random.default_rng(1)
     p, k, n = 3, 5, 2
     data = [(rng.normal(size=(k, 7, p + n)), rng.normal(size=(k, 7)), np.arange(k)[:, None]),
             (rng.normal(size=(k - 1, n, p + 2 * n)), rng.normal(size=(k - 1, n)),
-             np.stack([np.arange(k - 1), np.arange(1, k)], axis=1))]
+             np.stack([np.arange(k - 1), np.arange(1, k)], axis=1)),
+            (rng.normal(size=(3, 4, p + n)), rng.normal(size=(3, 4)), np.array([[0], [0], [3]]))]
     full, resid = [], []  # the whole Jacobian, row by row
     for jac, r, segs in data:
         for b in range(len(jac)):

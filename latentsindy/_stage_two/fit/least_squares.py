@@ -78,12 +78,12 @@ def levenberg_marquardt(problem, system, values, starts, weights, rho, max_itera
         # another step (the damped step's decrease would understate it in a long valley
         # of correlated coefficients, and stop there far from the minimum)
         if accepted and resolution > 0:
-            if -(eq.grad @ solve(a, -eq.grad, 1e-10 * scale, n_free)) < resolution:
+            if -(eq.grad @ solve(a, -eq.grad, 1e-10 * scale)) < resolution:
                 converged = True
                 break
         if iterations >= max_iterations // 2 and watch.check(eq.data_cost, give_up()):
             break
-        step = solve(a, -eq.grad, mu * scale, n_free)
+        step = solve(a, -eq.grad, mu * scale)
         iterations += 1
         trial_values = values + step[:n_free]
         trial_starts = starts + step[n_free:].reshape(starts.shape)
@@ -117,7 +117,7 @@ def covariance(eq, n_free):
     unit = np.zeros((a.shape[0], n_free))
     unit[np.arange(n_free), np.arange(n_free)] = 1.0
     try:
-        block = solve(a, unit, border=n_free)[:n_free]
+        block = solve(a, unit)[:n_free]
     except (np.linalg.LinAlgError, RuntimeError):
         return np.full((n_free, n_free), np.nan)
     return block

@@ -1,46 +1,55 @@
 """The normal equations of multiple shooting (J^T J and J^T r over the free
 coefficients and the segments' starts) and their solution.
 
-They have an arrow structure (coefficients couple everything, each start couples only
-its own segment and its neighbours), so they are assembled block by block; up to
-``DENSE`` unknowns (a few hundred: every benchmark family at 2,000 samples) they are
-held and solved densely, which costs least there, and beyond it sparsely, the starts'
-banded block factorized on its own (:func:`_bordered_solve`): memory and time grow
-with the number of segments, not with its square.
+They have an arrow structure: the free coefficients couple everything, each start
+couples only its own segment and, through continuity, its neighbours'. Up to ``DENSE``
+unknowns (a few hundred: every benchmark family at 2,000 samples) they are held and
+solved densely, which costs least there; beyond it they are held by their blocks
+(:class:`ArrowMatrix`: the coefficients' block, the coupling of starts to
+coefficients, and the starts' block tridiagonal in segments) and solved through the
+starts' banded Cholesky factor and the coefficients' Schur complement: memory and time
+grow with the number of segments, not with its square.
 """
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 import scipy.sparse as sps
-from scipy.linalg import cho_solve_banded, cholesky_banded
+from scipy.linalg import lapack
 from scipy.sparse.linalg import spsolve
 
 # normal equations with up to this many unknowns are assembled and solved densely
-# (LAPACK), larger ones sparsely
+# (LAPACK), larger ones by their blocks (ArrowMatrix)
 DENSE = 600
 
 
 class NormalEquations:
     """Block assembly of J^T J and J^T r for (free coefficients, segment starts): a dense
-    array when the system has at most ``DENSE`` unknowns, else a sparse matrix."""
+    array when the system has at most ``DENSE`` unknowns, else an :class:`ArrowMatrix`.
+
+    Every block of rows touches the free coefficients and the starts of one segment or
+    of two consecutive ones (a continuity gap)."""
 
     def __init__(self, n_free, n_segments, n_states):
         self.p, self.k, self.n = n_free, n_segments, n_states
         self.size = n_free + n_segments * n_states
         self.dense = self.size <= DENSE
-        # per added block: the unknowns its gradient entries go to and those entries;
-        # where its Gram entries go (flat row * size + col indices when dense, a (2, N)
-        # stack of rows and columns when sparse) and those entries
+        # dense: per added block the unknowns its gradient entries go to and those
+        # entries, and the flat (row * size + col) indices of its Gram entries and those
+        # entries (summed in the order added); else the arrow's blocks, summed as added
         self.grad_index, self.grads, self.where, self.vals = [], [], [], []
+        self.arrow = None if self.dense else ArrowMatrix.zeros(n_free, n_segments, n_states)
         self.cost, self._grad = 0.0, None
 
     def add(self, jac, resid, segments):
         """Rows ``jac`` (B, R, P + n * len(segments)) for the residuals ``resid`` (B, R)
-        of the blocks whose starts are ``segments`` (B, len(segments))."""
+        of the blocks whose starts are ``segments`` (B, 1) or consecutive pairs (B, 2)."""
         jac, resid = np.asarray(jac), np.asarray(resid)
+        segments = np.asarray(segments)
         gram = np.matmul(jac.transpose(0, 2, 1), jac)  # the BLAS: 7x an einsum's speed
-        self.grads.append(np.einsum("brc,br->bc", jac, resid).ravel())
+        grads = np.einsum("brc,br->bc", jac, resid)
         self._grad = None
         self.cost += float(np.sum(resid**2))
         idx = np.concatenate([np.broadcast_to(np.arange(self.p), (len(segments), self.p)),
@@ -48,12 +57,12 @@ class NormalEquations:
                                         + np.arange(self.n)).reshape(len(segments), -1)],
                              axis=1)
         self.grad_index.append(idx.ravel())
+        self.grads.append(grads.ravel())
         if self.dense:
             self.where.append((idx[:, :, None] * self.size + idx[:, None, :]).ravel())
+            self.vals.append(gram.ravel())
         else:
-            self.where.append(np.stack([np.repeat(idx[:, :, None], idx.shape[1], axis=2).ravel(),
-                                        np.repeat(idx[:, None, :], idx.shape[1], axis=1).ravel()]))
-        self.vals.append(gram.ravel())
+            self.arrow.add(gram, segments)
 
     @property
     def grad(self):
@@ -64,80 +73,167 @@ class NormalEquations:
         return self._grad
 
     def matrix(self):
-        """J^T J: a dense array (at most ``DENSE`` unknowns) or a sparse csc matrix."""
+        """J^T J: a dense array (at most ``DENSE`` unknowns) or an :class:`ArrowMatrix`."""
+        if not self.dense:
+            return self.arrow
         if not self.vals:
-            return np.zeros((self.size, self.size)) if self.dense else sps.csc_matrix(
-                (self.size, self.size))
-        if self.dense:  # entries summed in the order they were added
-            return np.bincount(np.concatenate(self.where), np.concatenate(self.vals),
-                               minlength=self.size * self.size).reshape(self.size, self.size)
-        rows, cols = np.concatenate(self.where, axis=1)
-        return sps.csc_matrix((np.concatenate(self.vals), (rows, cols)),
-                              shape=(self.size, self.size))
+            return np.zeros((self.size, self.size))
+        return np.bincount(np.concatenate(self.where), np.concatenate(self.vals),
+                           minlength=self.size * self.size).reshape(self.size, self.size)
+
+
+class ArrowMatrix:
+    """A symmetric matrix over (``p`` coefficients, ``k`` segment starts of ``n`` states)
+    held by its blocks: ``border`` (p, p), ``coupling`` (k, n, p) (starts by
+    coefficients), ``diag`` (k, n, n) and ``upper`` (k - 1, n, n) (start s by start
+    s + 1) of the starts' block-tridiagonal block."""
+
+    def __init__(self, border, coupling, diag, upper):
+        self.border, self.coupling, self.diag, self.upper = border, coupling, diag, upper
+        self.p, (self.k, self.n) = border.shape[0], diag.shape[:2]
+        self.shape = (self.p + self.k * self.n,) * 2
+
+    @classmethod
+    def zeros(cls, p, k, n):
+        return cls(np.zeros((p, p)), np.zeros((k, n, p)), np.zeros((k, n, n)),
+                   np.zeros((max(k - 1, 0), n, n)))
+
+    def add(self, gram, segments):
+        """Add Gram blocks (B, P + n m, P + n m) of blocks touching ``segments`` (B, m),
+        m = 1 or consecutive pairs (m = 2); each column of ``segments`` holds distinct
+        segments (as every addition of the refinement does)."""
+        p, n = self.p, self.n
+        self.border += gram[:, :p, :p].sum(axis=0)
+        first = segments[:, 0]
+        if segments.shape[1] == 2 and not np.all(segments[:, 1] == first + 1):
+            raise ValueError("ArrowMatrix.add: pairs of segments must be consecutive "
+                             f"(s, s + 1); received {segments[:3].tolist()}...")
+        add = _add if len(np.unique(first)) == len(first) else np.add.at
+        for j in range(segments.shape[1]):
+            rows = slice(p + j * n, p + (j + 1) * n)
+            add(self.coupling, first + j, gram[:, rows, :p])
+            add(self.diag, first + j, gram[:, rows, rows])
+        if segments.shape[1] == 2:
+            add(self.upper, first, gram[:, p:p + n, p + n:])
+
+    def diagonal(self):
+        return np.concatenate([np.diagonal(self.border),
+                               np.diagonal(self.diag, axis1=1, axis2=2).ravel()])
+
+    def toarray(self):
+        """The whole matrix, dense."""
+        p, k, n = self.p, self.k, self.n
+        out = np.zeros(self.shape)
+        out[:p, :p] = self.border
+        out[p:, :p] = self.coupling.reshape(k * n, p)
+        out[:p, p:] = out[p:, :p].T
+        starts = out[p:, p:].reshape(k, n, k, n)
+        s = np.arange(k)
+        starts[s, :, s, :] = self.diag
+        starts[s[:-1], :, s[1:], :] = self.upper
+        starts[s[1:], :, s[:-1], :] = self.upper.transpose(0, 2, 1)
+        return out
+
+    def tosparse(self):
+        """The whole matrix, sparse (csc)."""
+        p, k, n = self.p, self.k, self.n
+        a, b = (x.ravel() for x in np.meshgrid(np.arange(n), np.arange(n), indexing="ij"))
+        s = np.arange(k)[:, None]
+        u = np.arange(max(k - 1, 0))[:, None]
+        rows = [(s * n + a).ravel(), (u * n + a).ravel(), ((u + 1) * n + b).ravel()]
+        cols = [(s * n + b).ravel(), ((u + 1) * n + b).ravel(), (u * n + a).ravel()]
+        vals = [self.diag.reshape(-1), self.upper.reshape(-1), self.upper.reshape(-1)]
+        starts = sps.coo_matrix((np.concatenate(vals), (np.concatenate(rows),
+                                                        np.concatenate(cols))),
+                                shape=(k * n, k * n))
+        coupling = sps.csr_matrix(self.coupling.reshape(k * n, p))
+        return sps.bmat([[sps.csr_matrix(self.border), coupling.T], [coupling, starts]],
+                        format="csc")
+
+    def starts_solve(self, rhs, damping=None):
+        """``(S + diag(damping))^-1 rhs`` for the starts' block S through its banded
+        Cholesky factor; raises LinAlgError where it is not positive definite to working
+        precision."""
+        k, n = self.k, self.n
+        band = 2 * n - 1
+        rows, cols, src_d, src_u = _band_pattern(k, n)
+        packed = np.zeros((band + 1, k * n))
+        packed[rows[0], cols[0]] = self.diag.reshape(-1)[src_d]
+        if k > 1:
+            packed[rows[1], cols[1]] = self.upper.reshape(-1)[src_u]
+        if damping is not None:
+            packed[band] += damping
+        factor, info = lapack.dpbtrf(packed, lower=0)
+        if info != 0:
+            raise np.linalg.LinAlgError("the starts' block is not positive definite")
+        out, info = lapack.dpbtrs(factor, np.asarray(rhs, float).reshape(k * n, -1), lower=0)
+        if info != 0 or not np.all(np.isfinite(out)):
+            raise np.linalg.LinAlgError("the starts' block did not solve")
+        return out
+
+    def solve(self, rhs, damping=None):
+        """``(self + diag(damping))^-1 rhs`` by its structure: the starts eliminated
+        through their banded block, the coefficients from the ``p x p`` Schur complement;
+        by a general sparse LU where the starts' block is not positive definite to
+        working precision."""
+        p = self.p
+        columns = np.asarray(rhs, float).reshape(self.shape[0], -1)
+        try:
+            coupling = self.coupling.reshape(self.k * self.n, p)
+            inner = self.starts_solve(np.column_stack([coupling, columns[p:]]),
+                                      None if damping is None else damping[p:])
+        except np.linalg.LinAlgError:  # the general sparse solver
+            matrix = self.tosparse()
+            if damping is not None:
+                matrix = matrix + sps.diags(damping, format="csc")
+            out = spsolve(matrix, columns)
+            return np.asarray(out).reshape(np.shape(rhs))
+        border = self.border if damping is None else self.border + np.diag(damping[:p])
+        schur = border - coupling.T @ inner[:, :p]
+        x_free = np.linalg.solve(schur, columns[:p] - coupling.T @ inner[:, p:]) if p else \
+            np.zeros((0, columns.shape[1]))
+        x_starts = inner[:, p:] - inner[:, :p] @ x_free
+        return np.concatenate([x_free, x_starts]).reshape(np.shape(rhs))
+
+
+def _add(target, index, values):
+    """``target[index] += values`` for distinct ``index`` (np.add.at's sum, faster)."""
+    target[index] += values
+
+
+@lru_cache(maxsize=32)
+def _band_pattern(k, n):
+    """Where the entries of the diagonal blocks (upper triangle) and of the upper
+    blocks go in LAPACK's upper banded storage (bandwidth 2n - 1) of a k-block
+    tridiagonal matrix, and where they come from in the flattened blocks."""
+    band = 2 * n - 1
+    a, b = np.triu_indices(n)
+    s = np.arange(k)[:, None]
+    i, j = (s * n + a).ravel(), (s * n + b).ravel()
+    src_d = (s * n * n + a * n + b).ravel()
+    aa, bb = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    s = np.arange(max(k - 1, 0))[:, None]
+    iu, ju = (s * n + aa.ravel()).ravel(), ((s + 1) * n + bb.ravel()).ravel()
+    src_u = (s * n * n + aa.ravel() * n + bb.ravel()).ravel()
+    out = ((band + i - j, band + iu - ju), (j, ju), src_d, src_u)
+    for a in (*out[0], *out[1], src_d, src_u):
+        a.flags.writeable = False
+    return out
 
 
 def as_array(matrix):
     """A matrix from :meth:`NormalEquations.matrix` as a dense array."""
-    return matrix.toarray() if sps.issparse(matrix) else matrix
+    return matrix.toarray() if isinstance(matrix, ArrowMatrix) else matrix
 
 
-def solve(matrix, rhs, damping=None, border=None):
+def solve(matrix, rhs, damping=None):
     """Solve ``(matrix + diag(damping)) x = rhs`` for a symmetric positive (semi)definite
-    ``matrix``, a dense array or sparse (solved densely when small); ``matrix`` itself
-    is left as it was, so one point's matrix serves all of its damped solves. ``rhs``
-    may hold several columns. With ``border`` (the number of free coefficients, which
-    come first) a large sparse matrix is solved by :func:`_bordered_solve`."""
-    if sps.issparse(matrix) and matrix.shape[0] <= DENSE:
-        matrix = matrix.toarray()
-    if isinstance(matrix, np.ndarray):
-        if damping is not None:
-            matrix = matrix.copy()
-            matrix[np.diag_indices_from(matrix)] += damping
-        return np.linalg.solve(matrix, rhs)
+    ``matrix``, a dense array or an :class:`ArrowMatrix`; ``matrix`` itself is left as
+    it was, so one point's matrix serves all of its damped solves. ``rhs`` may hold
+    several columns."""
+    if isinstance(matrix, ArrowMatrix):
+        return matrix.solve(rhs, damping)
     if damping is not None:
-        matrix = matrix + sps.diags(damping, format="csc")
-    if border is not None:
-        try:
-            return _bordered_solve(matrix, np.asarray(rhs, float), border)
-        except (np.linalg.LinAlgError, ValueError):
-            pass  # not positive definite to working precision (or not finite): the
-            # general solver
-    return spsolve(matrix, rhs)
-
-
-# starts' blocks banded more widely than this are solved by the general sparse solver
-MAX_BAND = 64
-
-
-def _bordered_solve(matrix, rhs, p):
-    """The normal equations of multiple shooting, with their structure: the free
-    coefficients (the first ``p`` unknowns) touch everything, but a segment's start
-    only touches its own and its neighbours' (continuity), so the starts' block is
-    banded. A banded Cholesky factorization of that block and the ``p x p`` Schur
-    complement cost O(segments), where a general sparse LU of the bordered matrix grew
-    much faster (4 ms a solve at 400 segments). Raises LinAlgError where the block is
-    not positive definite or is banded more widely than :data:`MAX_BAND`."""
-    factor = banded_factor(matrix[p:, p:])
-    coupling = matrix[p:, :p].toarray()
-    columns = rhs.reshape(len(rhs), -1)
-    inner = cho_solve_banded(factor, np.column_stack([coupling, columns[p:]]))
-    schur = matrix[:p, :p].toarray() - coupling.T @ inner[:, :p]
-    x_free = np.linalg.solve(schur, columns[:p] - coupling.T @ inner[:, p:]) if p else \
-        np.zeros((0, columns.shape[1]))
-    x_starts = inner[:, p:] - inner[:, :p] @ x_free
-    return np.concatenate([x_free, x_starts]).reshape(rhs.shape)
-
-
-def banded_factor(matrix):
-    """The banded Cholesky factor of a sparse symmetric positive definite ``matrix``
-    (for ``scipy.linalg.cho_solve_banded``); raises LinAlgError where it is banded more
-    widely than :data:`MAX_BAND` or is not positive definite to working precision."""
-    coo = matrix.tocoo()
-    upper = coo.row <= coo.col
-    band = int(np.max(coo.col[upper] - coo.row[upper], initial=0))
-    if band > MAX_BAND:
-        raise np.linalg.LinAlgError("not banded")
-    packed = np.zeros((band + 1, coo.shape[0]))
-    np.add.at(packed, (band + coo.row[upper] - coo.col[upper], coo.col[upper]),
-              coo.data[upper])
-    return cholesky_banded(packed), False
+        matrix = matrix.copy()
+        matrix[np.diag_indices_from(matrix)] += damping
+    return np.linalg.solve(matrix, rhs)

@@ -18,25 +18,44 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sps
 import scipy.sparse.linalg as spla
-from scipy.linalg import cho_solve_banded
 
 from .field import ParametricSystem
-from .normal_equations import DENSE, banded_factor
+from .normal_equations import ArrowMatrix
 
 RIDGE = 1e-12  # of the trace, on the kept block's diagonal: a singular block still solves
 STACK = 1 << 19  # matrix entries in one stack of sets (4 MB of float64 a copy)
 
 
 def solve_starts(a_ss, rhs):
-    """``a_ss^-1 rhs`` for the starts' block of the normal equations: by a sparse LU, or
-    where the block is large (long recordings: more than ``DENSE`` unknowns), through
-    its band (a segment touches only its neighbours) where it has one."""
-    if a_ss.shape[0] > DENSE:
-        try:
-            return cho_solve_banded(banded_factor(a_ss), rhs)
-        except (np.linalg.LinAlgError, ValueError):
-            pass
+    """``a_ss^-1 rhs`` for the starts' block of small normal equations (a sparse LU)."""
     return spla.splu(a_ss.tocsc()).solve(rhs)
+
+
+def _eliminated(a, g, p):
+    """The coefficients' Schur complement and reduced gradient of the normal equations
+    ``a`` (dense, or an :class:`.normal_equations.ArrowMatrix` for long recordings,
+    eliminated through the starts' band), the starts' block ridged by ``1e-12`` of its
+    largest diagonal entry (a singular block still solves)."""
+    if isinstance(a, ArrowMatrix):
+        a_pp, a_ps = a.border, a.coupling.reshape(a.k * a.n, p).T
+        ridge = np.full(a.k * a.n, 1e-12 * max(float(a.diag.diagonal(axis1=1, axis2=2).max(
+            initial=0.0)), 1e-300))
+        rhs = np.column_stack([a_ps.T, g[p:]])
+        try:
+            x = a.starts_solve(rhs, ridge)
+        except np.linalg.LinAlgError:
+            a_ss = a.tosparse()[p:, p:] + sps.diags(ridge, format="csc")
+            x = spla.splu(a_ss.tocsc()).solve(rhs)
+        return a_pp - a_ps @ x[:, :p], g[:p] - a_ps @ x[:, p]
+    a = sps.csc_matrix(a)
+    a_pp = a[:p, :p].toarray()
+    a_ps = a[:p, p:].toarray()
+    a_ss = a[p:, p:].tocsc()
+    if not a_ss.shape[0]:
+        return a_pp, g[:p]
+    ridge = 1e-12 * max(float(a_ss.diagonal().max()), 1e-300)
+    x = solve_starts(a_ss + ridge * sps.identity(a_ss.shape[0]), np.column_stack([a_ps.T, g[p:]]))
+    return a_pp - a_ps @ x[:, :p], g[:p] - a_ps @ x[:, p]
 
 
 class Quadratic:
@@ -50,19 +69,7 @@ class Quadratic:
         eq = problem.equations(aug, fit.starts, np.ones(problem.n_segments), fit.rho)
         self.cells = list(zip(*np.nonzero(aug.free), strict=True))
         p = len(self.cells)
-        a = sps.csc_matrix(eq.matrix())
-        g = eq.grad
-        a_pp = a[:p, :p].toarray()
-        a_ps = a[:p, p:].toarray()
-        a_ss = a[p:, p:].tocsc()
-        if a_ss.shape[0]:
-            ridge = 1e-12 * max(float(a_ss.diagonal().max()), 1e-300)
-            x = solve_starts(a_ss + ridge * sps.identity(a_ss.shape[0]),
-                             np.column_stack([a_ps.T, g[p:]]))
-            self.a = a_pp - a_ps @ x[:, :p]
-            self.g = g[:p] - a_ps @ x[:, p]
-        else:
-            self.a, self.g = a_pp, g[:p]
+        self.a, self.g = _eliminated(eq.matrix(), eq.grad, p)
         self.values = np.array([aug.coef[c] for c in self.cells], dtype=float)
         self.current = np.array([bool(system.free[c]) for c in self.cells], dtype=bool)
 
