@@ -25,6 +25,7 @@ from .fit.least_squares import GiveUpWatch
 from .fit.refine import Fit, Problem
 from .fit.shooting import BlowUp
 from .fit.terms import select_terms
+from .fit.windows import judged_part
 from .propose.nested import nested_system
 from .propose.proposal import Proposal
 
@@ -221,16 +222,35 @@ def selected_and_scored(trial: Trial):
     error, held-out errors per held-out unit) after stepwise selection and the held-out
     score, or why there is no score
     ("does not join", "blew up", "not judged": the discovery's ``max_time`` was spent
-    before it started or while its folds were refitted)."""
+    before it started or while its folds were refitted).
+
+    On a long recording the terms are selected and the score is taken on windows of it
+    (:func:`.fit.windows.judged_part`), and the selected system is then refitted on
+    every sample (from the first fit's starts; where selection made no move, the first
+    fit is that fit): the fit returned is that one."""
     if expired():
         return "not judged"
     # the pool includes the system's own terms, so a term swapped out can come back
     pool = trial.candidates | trial.fit.system.free
+    problem = trial.problem
+    part = judged_part(problem)
     try:
-        fit, history = select_terms(trial.problem, trial.fit, pool)
-        if not trial.problem.joins(fit):
+        if part is None:
+            fit, history = select_terms(problem, trial.fit, pool)
+        else:
+            # the windows' own fit of the first fit's system, at its continuity weight
+            with stage("refinement"):
+                own = part.fit(trial.fit.system, trial.fit.starts[part.rows],
+                               penalties=(trial.fit.rho,))
+            selected, history = select_terms(part, own, pool)
+            fit = trial.fit  # no move was made: the first fit is the fit on every sample
+            if history:
+                with stage("refinement"):
+                    fit = problem.fit(selected.system, trial.fit.starts)
+        if not problem.joins(fit):
             return "does not join"  # not a trajectory of the system
-        cv, se, errors = cross_validate(trial.problem, fit)
+        cv, se, errors = cross_validate(problem, fit) if part is None else \
+            cross_validate(part, selected)
     except BlowUp:
         return "blew up"
     if expired():  # the folds' refits may have been cut short: not a held-out score

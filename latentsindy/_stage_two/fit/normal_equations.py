@@ -108,7 +108,8 @@ class ArrowMatrix:
         if segments.shape[1] == 2 and not np.all(segments[:, 1] == first + 1):
             raise ValueError("ArrowMatrix.add: pairs of segments must be consecutive "
                              f"(s, s + 1); received {segments[:3].tolist()}...")
-        add = _add if len(np.unique(first)) == len(first) else np.add.at
+        distinct = bool(np.all(np.diff(first) > 0)) or len(np.unique(first)) == len(first)
+        add = _add if distinct else np.add.at
         for j in range(segments.shape[1]):
             rows = slice(p + j * n, p + (j + 1) * n)
             add(self.coupling, first + j, gram[:, rows, :p])

@@ -131,7 +131,7 @@ class Problem:
         # the median step over all samples: with two sampling rates the dense one, so
         # segments stay short in time (long ones converge more slowly and, from a
         # poor start, to the wrong minimum; measured on two-rate recordings)
-        dt = float(np.median(np.concatenate([np.diff(t) for t in self.times])))
+        self.dt = dt = float(np.median(np.concatenate([np.diff(t) for t in self.times])))
         period = _dominant_period(self.observed, self.times)
         lo, hi = options.segment_samples
         duration = float(np.clip(period / 8, lo * dt, hi * dt))

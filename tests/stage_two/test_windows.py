@@ -1,0 +1,130 @@
+"""A long recording judged on windows of it (``fit.windows``): the windows are whole
+segments of the recording, spread over it, and their residuals, sensitivities and noise
+model are the recording's own on those segments."""
+
+import numpy as np
+import pytest
+import sympy as sp
+import torch
+
+from latentsindy import discover_hidden, systems
+from latentsindy._stage_two.fit.field import ParametricSystem
+from latentsindy._stage_two.fit.refine import Problem
+from latentsindy._stage_two.fit.windows import JUDGED, WINDOWS, judged_part
+
+X, H = sp.symbols("x h", real=True)
+
+
+def _problem(n_times, t_end, rng_seed=3, ar1=False, gap=False):
+    """Prey-only Lotka-Volterra (x' = x h, h = a - b y) as a refinement problem."""
+    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=n_times, t_end=t_end,
+                                  noise=0.01, seed=rng_seed)
+    x = data.x[:, :1].copy()
+    if ar1:  # strongly correlated noise on top: the AR(1) model and its carry-over
+        e = np.zeros(len(x))
+        rng = np.random.default_rng(rng_seed)
+        for i in range(1, len(e)):
+            e[i] = 0.9 * e[i - 1] + 0.2 * rng.standard_normal()
+        x[:, 0] += e
+    feats = (sp.Integer(1), X, X * H, H)
+    coef = np.array([[0.0, 0.0, 1.0, 0.0], [1.5, -0.075, 0.075, -1.5]])
+    free = np.array([[False] * 4, [True] * 4])
+    system = ParametricSystem(("x", "h"), 1, feats, coef, free)
+    guess = np.column_stack([data.x_clean[:, 0], 1.0 - 0.1 * data.x_clean[:, 1]])
+    cuts = [slice(0, n_times // 3), slice(n_times // 3 + 50, n_times)] if gap else [
+        slice(0, n_times)]
+    return system, Problem(system, [data.t[c] for c in cuts], [x[c] for c in cuts],
+                           [guess[c] for c in cuts])
+
+
+def test_a_recording_of_at_most_twice_the_judged_samples_is_judged_whole():
+    _, problem = _problem(2 * JUDGED, 200.0)
+    assert judged_part(problem) is None
+
+
+@pytest.mark.parametrize("ar1", [False, True])
+def test_windows_are_whole_segments_spread_over_the_recording(ar1):
+    """``WINDOWS`` runs of whole segments, the first at the start and the last at the
+    end, about ``JUDGED`` samples in all; every window's data, sample times and AR(1)
+    carry-over are the recording's own on its segments; and its residuals at the
+    recording's starts are the recording's residuals on those segments."""
+    system, problem = _problem(20000, 500.0, ar1=ar1)
+    assert (problem.carry is not None) == ar1
+    part = judged_part(problem)
+    assert len(part.groups) == WINDOWS
+    assert part.rows[0] == 0 and part.rows[-1] == problem.n_segments - 1
+    per_segment = problem.n_data / problem.n_segments
+    assert abs(part.n_data - JUDGED) <= WINDOWS * per_segment
+    widths = {g.n_segments for g in part.groups}
+    assert len(widths) == 1 and WINDOWS * widths.pop() * 2 <= problem.n_segments
+    full = problem.groups[0]
+    for i, g in enumerate(part.groups):
+        rows = part.rows[g.first:g.first + g.n_segments]
+        assert np.all(np.diff(rows) == 1)  # one run of consecutive segments
+        torch.testing.assert_close(g.observed, full.observed[rows], rtol=0, atol=0)
+        np.testing.assert_array_equal(g.starts, full.starts[rows])
+        mask = g.mask.numpy()
+        np.testing.assert_array_equal(part.observed[i][g.sample_index[mask]],
+                                      problem.observed[0][full.sample_index[rows][mask]])
+        np.testing.assert_array_equal(part.times[i][g.sample_index[mask]],
+                                      problem.times[0][full.sample_index[rows][mask]])
+        if ar1:
+            torch.testing.assert_close(part.carry[i], problem.carry[0][rows], rtol=0, atol=0)
+    starts = problem.initial_starts
+    np.testing.assert_array_equal(part.initial_starts, starts[part.rows])
+    ones = np.ones(problem.n_segments)
+    whole = problem.equations(system, starts, ones, 1.0, jacobian=False)
+    only = np.zeros(problem.n_segments)
+    only[part.rows] = 1.0  # the recording's data weighted to the windows' segments
+    windows = part.equations(system, starts[part.rows], np.ones(part.n_segments), 1.0,
+                             jacobian=False)
+    chosen = problem.equations(system, starts, only, 1.0, jacobian=False)
+    assert windows.data_cost == pytest.approx(chosen.data_cost, rel=1e-12)
+    assert windows.data_cost < 0.5 * whole.data_cost
+    errors = part.segment_errors(_at(part, system, starts[part.rows]), np.ones(part.n_segments,
+                                                                               bool))
+    which = np.zeros(problem.n_segments, bool)
+    which[part.rows] = True
+    np.testing.assert_allclose(errors, problem.segment_errors(_at(problem, system, starts),
+                                                              which), rtol=1e-12)
+
+
+def test_windows_stay_within_their_recordings():
+    """Where the data have two recordings (a gap), a window that would cross from one to
+    the other is two windows, each inside its recording."""
+    _, problem = _problem(24000, 600.0, gap=True)
+    part = judged_part(problem)
+    owners = []
+    for g in part.groups:
+        rows = part.rows[g.first:g.first + g.n_segments]
+        owner = {next(k for k, h in enumerate(problem.groups)
+                      if h.first <= r < h.first + h.n_segments) for r in rows}
+        assert len(owner) == 1
+        owners += owner
+    assert set(owners) == {0, 1}
+
+
+def _at(problem, system, starts):
+    """A stand-in fit at (system, starts), for the error functions."""
+    from latentsindy._stage_two.fit.refine import Fit
+
+    return Fit(system, starts, 0.0, 0.0, problem.n_data, 0.0, 0, np.zeros((0, 0)))
+
+
+def test_a_long_recording_judged_on_windows_finds_the_law_on_every_sample():
+    """Prey-only Lotka-Volterra at 1% noise, 10,000 samples (judged on windows): the law
+    is found with its hidden predator, confident, fitted on every sample (the hidden
+    series covers the whole recording and is the predator up to an affine map)."""
+    import pysindy as ps
+
+    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=10000, t_end=125.0,
+                                  noise=0.01, seed=0)
+    result = discover_hidden(data.x[:, :1], ps.PolynomialLibrary(degree=3, include_bias=False),
+                             t=data.t, feature_names=["x"], hidden_names=["h"],
+                             verbose=False)
+    assert result.confident, result.summary()
+    assert len(result.hidden_names) == 1 and "10000 samples used" in result.summary()
+    assert result.states.shape == (10000, 2)
+    cmp = result.compare_hidden(data.x_clean[:, 1])
+    assert cmp.r2[0] >= 0.999
+    assert cmp.scale[0, 0] == pytest.approx(-10.0, rel=1e-2)  # y = (alpha - h) / beta
