@@ -27,7 +27,16 @@ from .fit.refine import RefineOptions
 from .propose.nested import nested_proposals
 from .propose.proposal import close
 from .ranking import _same_terms, paired_evidence, rank, same_structure
-from .verdict import Verdict, build, finished, first_fits, selected_and_scored, unscored
+from .verdict import (
+    Verdict,
+    build,
+    finished,
+    first_fits,
+    needs_every_sample,
+    on_every_sample,
+    selected_and_scored,
+    unscored,
+)
 
 __all__ = ["Verdict", "build", "judge_all", "paired_evidence", "rank", "same_structure"]
 
@@ -99,8 +108,17 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     # 14 free took 1.4 s, 6 free 0.3 s), so neither process ends on a long one alone
     progress(f"selecting terms and scoring on held-out data: {len(finishing)} of "
              f"{len(trials)} fitted hypotheses contend")
-    outcomes = iter(map_on(options.device, selected_and_scored, finishing,
-                           cost=[t.fit.system.n_free for t in finishing]))
+    outcomes = map_on(options.device, lambda t: selected_and_scored(t, whole=False),
+                      finishing, cost=[t.fit.system.n_free for t in finishing])
+    # on a long recording, judged on windows: the selected systems refitted on every
+    # sample, side by side too (one map for both, a process could be left with a long
+    # refit at the end while the other waits)
+    refits = [k for k, (t, o) in enumerate(zip(finishing, outcomes, strict=True))
+              if needs_every_sample(t, o)]
+    refitted = dict(zip(refits, map_on(options.device, lambda k: on_every_sample(
+        finishing[k], outcomes[k]), refits), strict=True))
+    outcomes = iter(refitted[k] if k in refitted else on_every_sample(t, o)
+                    for k, (t, o) in enumerate(zip(finishing, outcomes, strict=True)))
     verdicts = [finished(t, next(outcomes)) if c else unscored(t, "rejected")
                 for t, c in zip(trials, contending, strict=True)]
     scored = [v for v in verdicts if v.scored]

@@ -216,7 +216,7 @@ def finish(trial: Trial) -> Verdict:
     return finished(trial, selected_and_scored(trial))
 
 
-def selected_and_scored(trial: Trial):
+def selected_and_scored(trial: Trial, whole: bool = True):
     """What :func:`finish` computes, in a form that pickles (a helper process can
     compute it, :mod:`latentsindy._core.parallel`): (fit, history, score, standard
     error, held-out errors per held-out unit) after stepwise selection and the held-out
@@ -225,37 +225,58 @@ def selected_and_scored(trial: Trial):
     before it started or while its folds were refitted).
 
     On a long recording the terms are selected and the score is taken on windows of it
-    (:func:`.fit.windows.judged_part`), and the selected system is then refitted on
-    every sample (from the first fit's starts; where selection made no move, the first
-    fit is that fit): the fit returned is that one."""
+    (:func:`.fit.windows.judged_part`); the fit is then that of the windows, and
+    :func:`on_every_sample` (made here unless ``whole`` is False) refits it on every
+    sample."""
     if expired():
         return "not judged"
     # the pool includes the system's own terms, so a term swapped out can come back
     pool = trial.candidates | trial.fit.system.free
-    problem = trial.problem
-    part = judged_part(problem)
+    problem = part = judged_part(trial.problem)
+    start = trial.fit
+    if part is None:
+        problem = trial.problem
+    else:  # the windows' own fit of the first fit's system, at its continuity weight
+        with stage("refinement"):
+            start = part.fit(start.system, start.starts[part.rows], penalties=(start.rho,))
     try:
-        if part is None:
-            fit, history = select_terms(problem, trial.fit, pool)
-        else:
-            # the windows' own fit of the first fit's system, at its continuity weight
-            with stage("refinement"):
-                own = part.fit(trial.fit.system, trial.fit.starts[part.rows],
-                               penalties=(trial.fit.rho,))
-            selected, history = select_terms(part, own, pool)
-            fit = trial.fit  # no move was made: the first fit is the fit on every sample
-            if history:
-                with stage("refinement"):
-                    fit = problem.fit(selected.system, trial.fit.starts)
+        fit, history = select_terms(problem, start, pool)
         if not problem.joins(fit):
             return "does not join"  # not a trajectory of the system
-        cv, se, errors = cross_validate(problem, fit) if part is None else \
-            cross_validate(part, selected)
+        cv, se, errors = cross_validate(problem, fit)
     except BlowUp:
         return "blew up"
     if expired():  # the folds' refits may have been cut short: not a held-out score
         return "not judged"
-    return fit, tuple(history), cv, se, errors
+    outcome = fit, tuple(history), cv, se, errors
+    return on_every_sample(trial, outcome) if whole else outcome
+
+
+def on_every_sample(trial: Trial, outcome):
+    """``outcome`` of :func:`selected_and_scored` with its fit on every sample of the
+    trial's recording: where the fit was made on windows of it, the selected system
+    refitted on all its segments from the first fit's starts (where selection made no
+    move, the first fit is that fit), or why it has none ("blew up", "does not join")."""
+    if isinstance(outcome, str) or len(outcome[0].starts) == trial.problem.n_segments:
+        return outcome
+    fit, history, cv, se, errors = outcome
+    try:
+        if history:
+            with stage("refinement"):
+                fit = trial.problem.fit(fit.system, trial.fit.starts)
+        else:
+            fit = trial.fit
+        if not trial.problem.joins(fit):
+            return "does not join"
+    except BlowUp:
+        return "blew up"
+    return fit, history, cv, se, errors
+
+
+def needs_every_sample(trial: Trial, outcome) -> bool:
+    """Whether :func:`on_every_sample` has a refit to make for ``outcome``."""
+    return (not isinstance(outcome, str) and bool(outcome[1])
+            and len(outcome[0].starts) != trial.problem.n_segments)
 
 
 def finished(trial: Trial, outcome) -> Verdict:
