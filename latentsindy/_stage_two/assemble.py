@@ -32,6 +32,7 @@ from .doubts.terms import (
 )
 from .fit.expected_score import REPLICATES, expected_score
 from .fit.held_out import by_recording
+from .fit.windows import judged_part
 from .judge import build
 from .propose.nested import monomial_name
 from .result import HiddenDiscovery
@@ -171,6 +172,12 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
     if expected is not None:
         notes.append(f"a right system's held-out score at this sampling: {expected:.3g} "
                      "(simulated from the fitted system, its noise level and times)")
+    part = judged_part(problem) if best.scored else None
+    if part is not None:
+        notes.append(f"a long recording: terms selected and held-out scores taken on "
+                     f"{len(part.groups)} windows of it ({part.n_data // problem.n_obs} of "
+                     f"{problem.n_data // problem.n_obs} samples); the system is fitted on "
+                     "every sample")
     result = HiddenDiscovery(
         ctx.times[0], ctx.observed[0], hidden[0], stds[0][:, system.n_observed:],
         tuple(observed), tuple(names), states, terms, coefs, score, score_se,

@@ -136,4 +136,5 @@ def test_a_long_recording_judged_on_windows_finds_the_law_on_every_sample(monkey
     cmp = result.compare_hidden(data.x_clean[:, 1])
     assert cmp.r2[0] >= 0.999
     assert cmp.scale[0, 0] == pytest.approx(-10.0, rel=1e-2)  # y = (alpha - h) / beta
-    assert judged  # it was judged on windows
+    assert judged  # it was judged on windows, and the summary says so
+    assert "terms selected and held-out scores taken on 4 windows" in result.summary()
