@@ -111,14 +111,13 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     outcomes = map_on(options.device, lambda t: selected_and_scored(t, whole=False),
                       finishing, cost=[t.fit.system.n_free for t in finishing])
     # on a long recording, judged on windows: the selected systems refitted on every
-    # sample, side by side too (one map for both, a process could be left with a long
-    # refit at the end while the other waits)
-    refits = [k for k, (t, o) in enumerate(zip(finishing, outcomes, strict=True))
-              if needs_every_sample(t, o)]
-    refitted = dict(zip(refits, map_on(options.device, lambda k: on_every_sample(
-        finishing[k], outcomes[k]), refits), strict=True))
-    outcomes = iter(refitted[k] if k in refitted else on_every_sample(t, o)
-                    for k, (t, o) in enumerate(zip(finishing, outcomes, strict=True)))
+    # sample, side by side too (made inside the first map, a process could be left with
+    # a long refit at the end while the other waits)
+    pending = [(t, o) for t, o in zip(finishing, outcomes, strict=True)
+               if needs_every_sample(t, o)]
+    refitted = iter(map_on(options.device, lambda pair: on_every_sample(*pair), pending))
+    outcomes = iter(next(refitted) if needs_every_sample(t, o) else on_every_sample(t, o)
+                    for t, o in zip(finishing, outcomes, strict=True))
     verdicts = [finished(t, next(outcomes)) if c else unscored(t, "rejected")
                 for t, c in zip(trials, contending, strict=True)]
     scored = [v for v in verdicts if v.scored]

@@ -256,10 +256,13 @@ def on_every_sample(trial: Trial, outcome):
     """``outcome`` of :func:`selected_and_scored` with its fit on every sample of the
     trial's recording: where the fit was made on windows of it, the selected system
     refitted on all its segments from the first fit's starts (where selection made no
-    move, the first fit is that fit), or why it has none ("blew up", "does not join")."""
+    move, the first fit is that fit), or why it has none ("blew up", "does not join",
+    "not judged": the discovery's ``max_time`` was spent before or during the refit)."""
     if isinstance(outcome, str) or len(outcome[0].starts) == trial.problem.n_segments:
         return outcome
     fit, history, cv, se, errors = outcome
+    if expired():
+        return "not judged"
     try:
         if history:
             with stage("refinement"):
@@ -270,6 +273,8 @@ def on_every_sample(trial: Trial, outcome):
             return "does not join"
     except BlowUp:
         return "blew up"
+    if expired():  # the refit may have been cut short: not the selected system's fit
+        return "not judged"
     return fit, history, cv, se, errors
 
 

@@ -274,8 +274,12 @@ def test_an_arrow_system_whose_starts_block_is_not_positive_definite_is_solved_b
     dense = matrix.toarray()
     with pytest.raises(np.linalg.LinAlgError, match="not positive definite"):
         matrix.starts_solve(np.ones(dense.shape[0] - 3))
-    rhs = np.random.default_rng(5).normal(size=dense.shape[0])
+    rng = np.random.default_rng(5)
+    rhs, damping = rng.normal(size=dense.shape[0]), rng.uniform(0.1, 2.0, dense.shape[0])
     np.testing.assert_allclose(solve(matrix, rhs), np.linalg.solve(dense, rhs),
+                               rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(solve(matrix, rhs, damping),
+                               np.linalg.solve(dense + np.diag(damping), rhs),
                                rtol=1e-8, atol=1e-10)
 
 
@@ -302,6 +306,13 @@ def test_term_selection_eliminates_large_starts_blocks_through_their_band(n_free
     np.testing.assert_allclose(reduced, g[:p] - a[:p, p:] @ x[:, p], rtol=1e-7, atol=1e-8)
     small = _eliminated(a, g, p)  # the dense form's own path
     np.testing.assert_allclose(small[0], schur, rtol=1e-7, atol=1e-8)
+    blocks = eq.matrix()
+    blocks.diag[7] -= 50.0 * np.eye(2)  # indefinite: the sparse LU's path
+    a = blocks.toarray()
+    x = np.linalg.solve(a[p:, p:], np.column_stack([a[p:, :p], g[p:]]))
+    schur, reduced = _eliminated(blocks, g, p)
+    np.testing.assert_allclose(schur, a[:p, :p] - a[:p, p:] @ x[:, :p], rtol=1e-7, atol=1e-8)
+    np.testing.assert_allclose(reduced, g[:p] - a[:p, p:] @ x[:, p], rtol=1e-7, atol=1e-8)
 
 
 def test_normal_equations_dense_and_sparse_assemble_the_same_system(monkeypatch):

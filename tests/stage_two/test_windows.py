@@ -16,6 +16,18 @@ from latentsindy._stage_two.fit.windows import JUDGED, LONG, WINDOWS, judged_par
 X, H = sp.symbols("x h", real=True)
 
 
+def _both(n_times, t_end):
+    """Lotka-Volterra with both states observed (no hidden state) as a refinement
+    problem."""
+    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=n_times, t_end=t_end,
+                                  noise=0.01, seed=5)
+    y = sp.Symbol("y", real=True)
+    feats = (X, y, X * y)
+    coef = np.array([[1.0, 0.0, -0.1], [0.0, -1.5, 0.075]])
+    system = ParametricSystem(("x", "y"), 2, feats, coef, coef != 0)
+    return system, Problem(system, [data.t], [data.x], [data.x_clean])
+
+
 def _problem(n_times, t_end, rng_seed=3, ar1=False, gap=False):
     """Prey-only Lotka-Volterra (x' = x h, h = a - b y) as a refinement problem."""
     data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=n_times, t_end=t_end,
@@ -43,19 +55,23 @@ def test_a_recording_of_at_most_long_samples_is_judged_whole():
     assert judged_part(problem) is None
 
 
-@pytest.mark.parametrize("ar1", [False, True])
-def test_windows_are_whole_segments_spread_over_the_recording(ar1):
+@pytest.mark.parametrize("kind", ["white", "ar1", "both observed"])
+def test_windows_are_whole_segments_spread_over_the_recording(kind):
     """``WINDOWS`` runs of whole segments, the first at the start and the last at the
     end, about ``JUDGED`` samples in all; every window's data, sample times and AR(1)
     carry-over are the recording's own on its segments; and its residuals at the
     recording's starts are the recording's residuals on those segments."""
-    system, problem = _problem(20000, 500.0, ar1=ar1)
+    ar1 = kind == "ar1"
+    system, problem = _both(20000, 500.0) if kind == "both observed" else _problem(
+        20000, 500.0, ar1=ar1)
     assert (problem.carry is not None) == ar1
     part = judged_part(problem)
     assert len(part.groups) == WINDOWS
     assert part.rows[0] == 0 and part.rows[-1] == problem.n_segments - 1
-    per_segment = problem.n_data / problem.n_segments
-    assert abs(part.n_data - JUDGED) <= WINDOWS * per_segment
+    n_obs = problem.n_obs
+    per_segment = problem.n_data / n_obs / problem.n_segments
+    assert part.n_data % n_obs == 0
+    assert abs(part.n_data / n_obs - JUDGED) <= WINDOWS * per_segment
     widths = {g.n_segments for g in part.groups}
     assert len(widths) == 1 and WINDOWS * widths.pop() * 2 <= problem.n_segments
     full = problem.groups[0]
@@ -79,6 +95,7 @@ def test_windows_are_whole_segments_spread_over_the_recording(ar1):
     only[part.rows] = 1.0  # the recording's data weighted to the windows' segments
     windows = part.equations(system, starts[part.rows], np.ones(part.n_segments), 1.0,
                              jacobian=False)
+    assert windows.data_cost > 0
     chosen = problem.equations(system, starts, only, 1.0, jacobian=False)
     assert windows.data_cost == pytest.approx(chosen.data_cost, rel=1e-12)
     assert windows.data_cost < 0.5 * whole.data_cost
@@ -88,6 +105,30 @@ def test_windows_are_whole_segments_spread_over_the_recording(ar1):
     which[part.rows] = True
     np.testing.assert_allclose(errors, problem.segment_errors(_at(problem, system, starts),
                                                               which), rtol=1e-12)
+
+
+def test_windows_are_counted_in_samples_where_a_recording_is_sparse():
+    """A dense recording and a sparse one (7 samples over six times its span, most of
+    its segments empty): every window holds about ``JUDGED / WINDOWS`` samples, none is
+    an empty run of segments, and the part holds only segments with samples in its
+    runs."""
+    system, _ = _problem(1000, 10.0)
+    dense = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=17000, t_end=170.0,
+                                   noise=0.01, seed=3)
+    sparse = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=7, t_end=1000.0,
+                                    noise=0.01, seed=4)
+
+    def guess(d):
+        return np.column_stack([d.x_clean[:, 0], 1.0 - 0.1 * d.x_clean[:, 1]])
+
+    problem = Problem(system, [dense.t, sparse.t], [dense.x[:, :1], sparse.x[:, :1]],
+                      [guess(dense), guess(sparse)])
+    part = judged_part(problem)
+    samples = [int(g.mask.sum()) for g in part.groups]
+    assert all(n > 0 for n in samples)
+    assert len(samples) == WINDOWS and min(samples) >= JUDGED / WINDOWS
+    assert sum(samples) <= JUDGED + WINDOWS * 50
+    np.testing.assert_array_equal(part.initial_starts, problem.initial_starts[part.rows])
 
 
 def test_windows_stay_within_their_recordings():
@@ -136,5 +177,41 @@ def test_a_long_recording_judged_on_windows_finds_the_law_on_every_sample(monkey
     cmp = result.compare_hidden(data.x_clean[:, 1])
     assert cmp.r2[0] >= 0.999
     assert cmp.scale[0, 0] == pytest.approx(-10.0, rel=1e-2)  # y = (alpha - h) / beta
+    counts = {}
+    for term in result.terms:
+        if term.value != 0:
+            counts[term.state] = counts.get(term.state, 0) + 1
+    assert counts == {"x": 1, "h": 4}, result.summary()  # x' = h x; h' = a + b x + c h + d h x
     assert judged  # it was judged on windows, and the summary says so
     assert "terms selected and held-out scores taken on 4 windows" in result.summary()
+
+
+def test_a_system_selected_on_windows_is_refitted_on_every_sample():
+    """``on_every_sample``: a system selected on the windows (here: the prey's law with
+    a term added, x) is refitted on every segment of the recording, as that system;
+    where selection made no move the first fit stands; outcomes that need no refit are
+    left as they are."""
+    from types import SimpleNamespace
+
+    from latentsindy._stage_two.verdict import needs_every_sample, on_every_sample
+
+    system, problem = _problem(20000, 500.0)
+    first = problem.fit(system, max_iterations=10)
+    trial = SimpleNamespace(problem=problem, fit=first)
+    part = judged_part(problem)
+    free = system.free.copy()
+    free[0, 1] = True  # x in the prey's law
+    added = ParametricSystem(system.state_names, 1, system.features, system.coef, free)
+    selected = part.fit(added, first.starts[part.rows], max_iterations=10)
+    moved = (selected, (("add", (0, 1), 3.0),), 1.0, 0.1, np.ones(3))
+    assert needs_every_sample(trial, moved)
+    fit, *rest = on_every_sample(trial, moved)
+    assert len(fit.starts) == problem.n_segments and fit.n_data == problem.n_data
+    np.testing.assert_array_equal(fit.system.free, free)
+    assert rest[0] == moved[1] and fit.data_cost <= first.data_cost
+    still = (selected, (), 1.0, 0.1, np.ones(3))
+    assert not needs_every_sample(trial, still)
+    assert on_every_sample(trial, still)[0] is first
+    whole = (first, (("add", (0, 1), 3.0),), 1.0, 0.1, np.ones(3))
+    assert not needs_every_sample(trial, whole) and on_every_sample(trial, whole) is whole
+    assert on_every_sample(trial, "blew up") == "blew up"

@@ -36,18 +36,26 @@ LONG = 4 * JUDGED  # samples beyond which a recording is judged on windows
 
 def judged_part(problem):
     """The problem restricted to ``WINDOWS`` stretches of whole segments, about
-    ``JUDGED`` samples in all, evenly spread over its segments; None when it has at most
-    ``LONG`` samples (judged whole). The part's ``rows`` are its segments' indices
-    in ``problem`` (its starts are ``starts[part.rows]``)."""
+    ``JUDGED / WINDOWS`` samples each, starting at samples evenly spread over the data;
+    None when it has at most ``LONG`` samples (judged whole), or when the stretches
+    would hold half its samples or more. A stretch is counted in samples, not segments,
+    so that a sparsely sampled stretch (or recording) is not taken for a dense one; a
+    stretch that crosses from one recording into the next is cut in two there. The
+    part's ``rows`` are its segments' indices in ``problem`` (its starts are
+    ``starts[part.rows]``)."""
     counts = np.concatenate([g.mask.numpy().sum(axis=1) for g in problem.groups])
-    if counts.sum() <= LONG:
+    total = int(counts.sum())
+    if total <= LONG:
         return None
-    width = int(np.ceil(JUDGED / WINDOWS / max(float(counts.mean()), 1.0)))
-    if WINDOWS * width * 2 > len(counts):
-        return None  # the windows would hold half the segments or more
+    ends = np.cumsum(counts)  # samples up to each segment's end
+    each = JUDGED / WINDOWS
     chosen = np.zeros(len(counts), dtype=bool)
-    for first in np.round(np.linspace(0, len(counts) - width, WINDOWS)).astype(int):
-        chosen[first:first + width] = True
+    for sample in np.linspace(0, total - each, WINDOWS):
+        first = int(np.searchsorted(ends, sample, side="right"))  # the segment holding it
+        last = int(np.searchsorted(ends, ends[first] - counts[first] + each))
+        chosen[first:last + 1] = True
+    if 2 * int(counts[chosen].sum()) > total:
+        return None
     return _part(problem, chosen)
 
 
@@ -55,28 +63,30 @@ def _part(problem, chosen):
     """``problem`` on the segments marked in ``chosen``: every run of consecutive chosen
     segments of one recording becomes a recording of its own (the same segments, grids,
     scales and noise model; its own AR(1) carry-over and batches)."""
-    groups, times, observed, first = [], [], [], 0
+    groups, times, observed, rows = [], [], [], []
     for g in problem.groups:
         marks = np.r_[False, chosen[g.first:g.first + g.n_segments], False].astype(int)
         edges = np.flatnonzero(np.diff(marks))
         for a, b in zip(edges[::2], edges[1::2], strict=True):
+            # a run holds samples: it starts at a segment holding the sample a window
+            # starts from, or at a recording's first segment (which holds its first)
             index = g.sample_index[a:b]
             lo = int(index[index >= 0].min())
             hi = int(index.max()) + 1
             t, x = problem.times[g.trajectory], problem.observed[g.trajectory]
-            groups.append(Group(len(groups), first, b - a, g.grid, g.positions[a:b],
+            groups.append(Group(len(groups), len(rows), b - a, g.grid, g.positions[a:b],
                                 g.observed[a:b], g.mask[a:b],
                                 np.where(index >= 0, index - lo, -1), g.starts[a:b]))
             times.append(t[lo:hi])
             observed.append(x[lo:hi])
-            first += b - a
+            rows.extend(range(g.first + a, g.first + b))
     part = copy.copy(problem)
     part.groups, part.times, part.observed = groups, times, observed
     part.batches = make_batches(groups)
     part.carry = None if problem.carry is None else carry_over(groups, problem.phi,
                                                                problem.dt)
-    part.n_segments = first
-    part.rows = np.flatnonzero(chosen)
+    part.n_segments = len(rows)
+    part.rows = np.asarray(rows, dtype=np.int64)
     part.initial_starts = problem.initial_starts[part.rows]
     part.n_data = int(sum(int(g.mask.sum()) for g in groups)) * problem.n_obs
     return part
