@@ -32,6 +32,7 @@ from .doubts.terms import (
 )
 from .fit.expected_score import REPLICATES, expected_score
 from .fit.held_out import by_recording
+from .fit.shooting import BlowUp
 from .fit.windows import judged_part
 from .judge import build
 from .propose.nested import monomial_name
@@ -212,7 +213,7 @@ def _refitting_checks(best, ctx, simulate):
     each)."""
     problem, fit = best.problem, best.fit
     checks = [
-        (lambda: expected_score(problem, fit) if simulate else None,
+        (lambda: _reference(problem, fit) if simulate else None,
          2.0 * REPLICATES if simulate else 0.0),
         (lambda: beyond_terms(best, ctx.feature_exprs, ctx.free_rows), 1.5),
         (lambda: (folded_score(best, ctx.closure_library)
@@ -223,6 +224,20 @@ def _refitting_checks(best, ctx, simulate):
     ]
     return map_on(problem.options.device, lambda check: check[0](), checks,
                   cost=[c for _, c in checks])
+
+
+def _reference(problem, fit):
+    """:func:`.fit.expected_score.expected_score` of ``fit``, on the windows its score
+    was taken on where the recording was judged on windows (:mod:`.fit.windows`), so
+    that the reference is read against a score of the same kind."""
+    part = judged_part(problem)
+    if part is None:
+        return expected_score(problem, fit)
+    try:
+        own = part.fit(fit.system, fit.starts[part.rows], penalties=(fit.rho,))
+    except BlowUp:
+        return None
+    return expected_score(part, own)
 
 
 def _static_notes(terms, names):

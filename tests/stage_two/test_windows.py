@@ -215,3 +215,24 @@ def test_a_system_selected_on_windows_is_refitted_on_every_sample():
     whole = (first, (("add", (0, 1), 3.0),), 1.0, 0.1, np.ones(3))
     assert not needs_every_sample(trial, whole) and on_every_sample(trial, whole) is whole
     assert on_every_sample(trial, "blew up") == "blew up"
+
+
+def test_the_simulated_reference_of_a_windowed_score_is_taken_on_the_windows(monkeypatch):
+    """A score taken on windows is read against a reference simulated and scored on the
+    same windows (the system refitted there), a whole recording's against one on it."""
+    from latentsindy._stage_two import assemble
+
+    seen = []
+    monkeypatch.setattr(assemble, "expected_score",
+                        lambda problem, fit: seen.append((problem, fit)) or 1.0)
+    system, problem = _problem(20000, 500.0)
+    fit = problem.fit(system, max_iterations=5)
+    assert assemble._reference(problem, fit) == 1.0
+    (used, own), = seen
+    part = judged_part(problem)
+    np.testing.assert_array_equal(used.rows, part.rows)
+    assert len(own.starts) == part.n_segments and own.n_data == part.n_data
+    short_system, short = _problem(2000, 50.0)
+    short_fit = short.fit(short_system, max_iterations=5)
+    assemble._reference(short, short_fit)
+    assert seen[-1] == (short, short_fit)
