@@ -174,6 +174,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
         notes.append(f"a right system's held-out score at this sampling: {expected:.3g} "
                      "(simulated from the fitted system, its noise level and times)")
     part = judged_part(problem) if best.scored else None
+    judged = problem if part is None else part  # what the score was taken on
     if part is not None:
         notes.append(f"a long recording: terms selected and held-out scores taken on "
                      f"{len(part.groups)} windows of it ({part.n_data // problem.n_obs} of "
@@ -187,7 +188,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
         doubts(score, score_se, refinement, terms, names,
                None if best.scored else best.history[0], expected)
         + weak_check_doubts(expected, unaided, best.scored and np.isfinite(score),
-                            (len(problem.groups), score_se) if by_recording(problem)
+                            (len(judged.groups), score_se) if by_recording(judged)
                             else None)
         + segment_constant_doubts(terms, names, system.n_observed, trajectories, stds)
         + first_integral_doubt(best, names)
