@@ -232,14 +232,14 @@ def selected_and_scored(trial: Trial, whole: bool = True):
         return "not judged"
     # the pool includes the system's own terms, so a term swapped out can come back
     pool = trial.candidates | trial.fit.system.free
-    problem = part = judged_part(trial.problem)
-    start = trial.fit
-    if part is None:
-        problem = trial.problem
-    else:  # the windows' own fit of the first fit's system, at its continuity weight
-        with stage("refinement"):
-            start = part.fit(start.system, start.starts[part.rows], penalties=(start.rho,))
+    part = judged_part(trial.problem)
+    problem, start = (trial.problem if part is None else part), trial.fit
     try:
+        if part is not None:  # the windows' own fit of the first fit's system, at the
+            # first fit's continuity weight
+            with stage("refinement"):
+                start = part.fit(start.system, start.starts[part.rows],
+                                 penalties=(start.rho,))
         fit, history = select_terms(problem, start, pool)
         if not problem.joins(fit):
             return "does not join"  # not a trajectory of the system
@@ -257,24 +257,24 @@ def on_every_sample(trial: Trial, outcome):
     trial's recording: where the fit was made on windows of it, the selected system
     refitted on all its segments from the first fit's starts (where selection made no
     move, the first fit is that fit), or why it has none ("blew up", "does not join",
-    "not judged": the discovery's ``max_time`` was spent before or during the refit)."""
+    "not judged": the discovery's ``max_time`` was spent before or during a refit)."""
     if isinstance(outcome, str) or len(outcome[0].starts) == trial.problem.n_segments:
         return outcome
     fit, history, cv, se, errors = outcome
-    if expired():
+    if history and expired():
         return "not judged"
     try:
         if history:
             with stage("refinement"):
                 fit = trial.problem.fit(fit.system, trial.fit.starts)
+            if expired():  # the refit may have been cut short: not its system's fit
+                return "not judged"
         else:
             fit = trial.fit
         if not trial.problem.joins(fit):
             return "does not join"
     except BlowUp:
         return "blew up"
-    if expired():  # the refit may have been cut short: not the selected system's fit
-        return "not judged"
     return fit, history, cv, se, errors
 
 
