@@ -176,10 +176,14 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
     part = judged_part(problem) if best.scored else None
     judged = problem if part is None else part  # what the score was taken on
     if part is not None:
-        notes.append(f"a long recording: terms selected and held-out scores taken on "
-                     f"{len(part.groups)} windows of it ({part.n_data // problem.n_obs} of "
-                     f"{problem.n_data // problem.n_obs} samples); the system is fitted on "
-                     "every sample")
+        used, total = part.n_data // problem.n_obs, problem.n_data // problem.n_obs
+        pieces = (f", cut into {len(part.groups)} pieces where the data are split"
+                  if len(part.groups) > part.windows else "")
+        notes.append(f"long recording ({total} samples): the terms were chosen, and the "
+                     "held-out scores (this system's and the alternatives') taken, on "
+                     f"{part.windows} windows of about {round(used / part.windows)} samples "
+                     f"spread over it ({used} samples in all{pieces}); the coefficients and "
+                     "their errors come from a fit to every sample")
     result = HiddenDiscovery(
         ctx.times[0], ctx.observed[0], hidden[0], stds[0][:, system.n_observed:],
         tuple(observed), tuple(names), states, terms, coefs, score, score_se,
