@@ -33,7 +33,7 @@ from .doubts.terms import (
 from .fit.expected_score import REPLICATES, expected_score
 from .fit.held_out import by_recording
 from .fit.shooting import BlowUp
-from .fit.windows import judged_part
+from .fit.windows import WINDOWS, judged_part
 from .judge import build
 from .propose.nested import monomial_name
 from .result import HiddenDiscovery
@@ -178,10 +178,10 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
     if part is not None:
         used, total = part.n_data // problem.n_obs, problem.n_data // problem.n_obs
         pieces = (f", cut into {len(part.groups)} pieces where the data are split"
-                  if len(part.groups) > part.windows else "")
+                  if len(part.groups) > WINDOWS else "")
         notes.append(f"long recording ({total} samples): the terms were chosen, and the "
                      "held-out scores (this system's and the alternatives') taken, on "
-                     f"{part.windows} windows of about {round(used / part.windows)} samples "
+                     f"{WINDOWS} windows of about {round(used / WINDOWS)} samples "
                      f"spread over it ({used} samples in all{pieces}); the coefficients and "
                      "their errors come from a fit to every sample")
     result = HiddenDiscovery(

@@ -258,7 +258,7 @@ def on_every_sample(trial: Trial, outcome):
     refitted on all its segments from the first fit's starts (where selection made no
     move, the first fit is that fit), or why it has none ("blew up", "does not join",
     "not judged": the discovery's ``max_time`` was spent before or during a refit)."""
-    if isinstance(outcome, str) or len(outcome[0].starts) == trial.problem.n_segments:
+    if not _on_windows(trial, outcome):
         return outcome
     fit, history, cv, se, errors = outcome
     if history and expired():
@@ -280,7 +280,13 @@ def on_every_sample(trial: Trial, outcome):
 
 def needs_every_sample(trial: Trial, outcome) -> bool:
     """Whether :func:`on_every_sample` has a refit to make for ``outcome``."""
-    return (not isinstance(outcome, str) and bool(outcome[1])
+    return _on_windows(trial, outcome) and bool(outcome[1])
+
+
+def _on_windows(trial: Trial, outcome) -> bool:
+    """Whether ``outcome`` holds a fit made on windows of the trial's recording (its
+    starts: one per segment of the windows, fewer than the recording's)."""
+    return (not isinstance(outcome, str)
             and len(outcome[0].starts) != trial.problem.n_segments)
 
 

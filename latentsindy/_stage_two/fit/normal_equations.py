@@ -17,8 +17,9 @@ from functools import lru_cache
 
 import numpy as np
 import scipy.sparse as sps
-from scipy.linalg import lapack
 from scipy.sparse.linalg import spsolve
+
+from ..._core.banded import cholesky_upper, solve_upper
 
 # normal equations with up to this many unknowns are assembled and solved densely
 # (LAPACK), larger ones by their blocks (ArrowMatrix)
@@ -100,8 +101,8 @@ class ArrowMatrix:
 
     def add(self, gram, segments):
         """Add Gram blocks (B, P + n m, P + n m) of blocks touching ``segments`` (B, m),
-        m = 1 or consecutive pairs (m = 2); each column of ``segments`` holds distinct
-        segments (as every addition of the refinement does)."""
+        m = 1 or consecutive pairs (m = 2). Where the blocks' segments are distinct (as
+        in every addition of the refinement) by one indexed sum, else by ``np.add.at``."""
         p, n = self.p, self.n
         self.border += gram[:, :p, :p].sum(axis=0)
         first = segments[:, 0]
@@ -164,11 +165,13 @@ class ArrowMatrix:
             packed[rows[1], cols[1]] = self.upper.reshape(-1)[src_u]
         if damping is not None:
             packed[band] += damping
-        factor, info = lapack.dpbtrf(packed, lower=0)
-        if info != 0:
-            raise np.linalg.LinAlgError("the starts' block is not positive definite")
-        out, info = lapack.dpbtrs(factor, np.asarray(rhs, float).reshape(k * n, -1), lower=0)
-        if info != 0 or not np.all(np.isfinite(out)):
+        try:
+            factor = cholesky_upper(packed)
+        except np.linalg.LinAlgError as error:
+            raise np.linalg.LinAlgError(f"the starts' block is not positive definite "
+                                        f"({error})") from None
+        out = solve_upper(factor, np.asarray(rhs, float).reshape(k * n, -1))
+        if not np.all(np.isfinite(out)):
             raise np.linalg.LinAlgError("the starts' block did not solve")
         return out
 

@@ -56,9 +56,7 @@ def judged_part(problem):
         chosen[first:last + 1] = True
     if 2 * int(counts[chosen].sum()) > total:
         return None
-    part = _part(problem, chosen)
-    part.windows = WINDOWS  # its recordings: the windows, cut where the data are split
-    return part
+    return _part(problem, chosen)
 
 
 def _part(problem, chosen):
