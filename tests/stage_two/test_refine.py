@@ -283,6 +283,26 @@ def test_an_arrow_system_whose_starts_block_is_not_positive_definite_is_solved_b
                                rtol=1e-8, atol=1e-10)
 
 
+def test_singular_arrow_systems_raise_as_the_dense_solve_does():
+    """A singular system held by blocks (a start no residual touches) raises numpy's
+    LinAlgError, as the dense solve does, not a warning and NaN; the covariance of
+    such a fit is then NaN, as for a small system."""
+    from latentsindy._stage_two.fit.least_squares import covariance
+
+    eq = _arrow_equations(2)
+    matrix = eq.matrix()
+    matrix.diag[3] = 0.0
+    matrix.coupling[3] = 0.0
+    matrix.upper[2] = 0.0
+    matrix.upper[3] = 0.0
+    with pytest.raises(np.linalg.LinAlgError, match="singular"):
+        solve(matrix, np.ones(matrix.shape[0]))
+    assert np.all(np.isfinite(solve(matrix, np.ones(matrix.shape[0]),
+                                    np.ones(matrix.shape[0]))))
+    eq.matrix = lambda: matrix
+    assert np.all(np.isnan(covariance(eq, 2)))
+
+
 def test_arrow_blocks_take_only_consecutive_pairs_of_segments():
     """A block touching two segments that are not neighbours has no place in the arrow:
     an error that says so, not a wrong matrix."""

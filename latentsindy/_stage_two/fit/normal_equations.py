@@ -3,27 +3,31 @@ coefficients and the segments' starts) and their solution.
 
 They have an arrow structure: the free coefficients couple everything, each start
 couples only its own segment and, through continuity, its neighbours'. Up to ``DENSE``
-unknowns (a few hundred: every benchmark family at 2,000 samples) they are held and
-solved densely, which costs least there; beyond it they are held by their blocks
+unknowns (a two-state system of a few dozen segments) they are held and solved
+densely, which costs least there; beyond it they are held by their blocks
 (:class:`ArrowMatrix`: the coefficients' block, the coupling of starts to
 coefficients, and the starts' block tridiagonal in segments) and solved through the
 starts' banded Cholesky factor and the coefficients' Schur complement: memory and time
-grow with the number of segments, not with its square.
+grow with the number of segments, not with its square or cube (a three-state system
+of 100 segments, 320 unknowns: assembly and a damped solve 1.2 and 0.2 ms by blocks,
+1.4 and 1.0 ms densely; at 86 unknowns the two cost the same).
 """
 
 from __future__ import annotations
 
+import warnings
 from functools import lru_cache
 
 import numpy as np
 import scipy.sparse as sps
-from scipy.sparse.linalg import spsolve
+from scipy.sparse.linalg import MatrixRankWarning, spsolve
 
 from ..._core.banded import cholesky_upper, solve_upper
 
 # normal equations with up to this many unknowns are assembled and solved densely
-# (LAPACK), larger ones by their blocks (ArrowMatrix)
-DENSE = 600
+# (LAPACK), larger ones by their blocks (ArrowMatrix): the two cost the same at about
+# 100 unknowns (benchmarks/README.md, speed)
+DENSE = 100
 
 
 class NormalEquations:
@@ -190,7 +194,12 @@ class ArrowMatrix:
             matrix = self.tosparse()
             if damping is not None:
                 matrix = matrix + sps.diags(damping, format="csc")
-            out = spsolve(matrix, columns)
+            with warnings.catch_warnings():  # singular: an error, as numpy's dense solve
+                warnings.simplefilter("error", MatrixRankWarning)
+                try:
+                    out = spsolve(matrix, columns)
+                except MatrixRankWarning:
+                    raise np.linalg.LinAlgError("the normal equations are singular") from None
             return np.asarray(out).reshape(np.shape(rhs))
         border = self.border if damping is None else self.border + np.diag(damping[:p])
         schur = border - coupling.T @ inner[:, :p]

@@ -33,7 +33,7 @@ def solve_starts(a_ss, rhs):
 
 def _eliminated(a, g, p):
     """The coefficients' Schur complement and reduced gradient of the normal equations
-    ``a`` (dense, or an :class:`.normal_equations.ArrowMatrix` for long recordings,
+    ``a`` (dense, or an :class:`.normal_equations.ArrowMatrix` beyond a hundred unknowns,
     eliminated through the starts' band), the starts' block ridged by ``1e-12`` of its
     largest diagonal entry (a singular block still solves)."""
     if isinstance(a, ArrowMatrix):
