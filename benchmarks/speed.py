@@ -14,10 +14,17 @@ Usage::
     python benchmarks/speed.py --families lorenz_z modulated lorenz_x --draws 3
     python benchmarks/speed.py --one-process         # no second process for stage two
     python benchmarks/speed.py --scaling --draws 3   # 2,000 samples against 20,000
+    python benchmarks/speed.py --normal-equations    # dense against blocks, by size
 
 ``--scaling`` times each draw twice: as drawn (2,000 samples) and over ten times its
 span at the same sampling density (20,000 samples), and prints the ratio of the two
 calls' times (the target: at most 3).
+
+``--normal-equations`` times one point of the refinement's Levenberg-Marquardt fits
+(assembling J^T J and J^T r from one block of rows per segment and one per continuity
+gap, then two damped solves, as at an accepted point) held densely and by blocks
+(``ArrowMatrix``), for systems of increasing size: where the two cost the same is
+where ``normal_equations.DENSE`` sits.
 
 A lone call may give stage two's independent pieces (held-out folds, candidates after
 their first fit) to a second process on a second core (``latentsindy._core.parallel``);
@@ -106,6 +113,57 @@ def scaling(families, draws, noise, span=10):
     return rows
 
 
+# (free coefficients, segments, states): two-state systems of 10-40 segments, three-
+# state ones of 40-100, four-state ones of 100
+SHAPES = ((4, 10, 2), (6, 20, 2), (6, 40, 2), (10, 40, 3), (15, 60, 3), (20, 100, 3),
+          (30, 100, 4))
+
+
+def normal_equations(shapes=SHAPES, repeats=200, rows=20):
+    """Milliseconds of assembly and of two damped solves, densely and by blocks, on
+    one thread (as a discovery runs)."""
+    from threadpoolctl import threadpool_limits
+
+    from latentsindy._stage_two.fit import normal_equations as ne
+
+    def point(p, k, n, dense):
+        rng = np.random.default_rng(0)
+        pairs = np.stack([np.arange(k - 1), np.arange(1, k)], axis=1)
+        blocks = [(rng.normal(size=(k, rows, p + n)), rng.normal(size=(k, rows)),
+                   np.arange(k)[:, None]),
+                  (rng.normal(size=(k - 1, n, p + 2 * n)), rng.normal(size=(k - 1, n)), pairs)]
+        saved, ne.DENSE = ne.DENSE, (10**9 if dense else 0)
+        try:
+            start = time.perf_counter()
+            for _ in range(repeats):
+                eq = ne.NormalEquations(p, k, n)
+                for block in blocks:
+                    eq.add(*block)
+                matrix = eq.matrix()
+            built = time.perf_counter()
+            for _ in range(repeats):
+                scale = matrix.diagonal()
+                ne.solve(matrix, -eq.grad, 1e-10 * scale)
+                step = ne.solve(matrix, -eq.grad, 1e-3 * scale)
+            solved = time.perf_counter()
+        finally:
+            ne.DENSE = saved
+        return (built - start) / repeats * 1e3, (solved - built) / repeats * 1e3, step
+
+    print("| free coefficients | segments | states | unknowns | dense: assembly / two "
+          "solves (ms) | blocks: assembly / two solves (ms) | largest difference |\n"
+          "|---|---|---|---|---|---|---|")
+    out = []
+    for p, k, n in shapes:
+        with threadpool_limits(1):
+            dense, blocks = point(p, k, n, True), point(p, k, n, False)
+        gap = float(np.max(np.abs(dense[2] - blocks[2])) / np.max(np.abs(dense[2])))
+        print(f"| {p} | {k} | {n} | {p + k * n} | {dense[0]:.3f} / {dense[1]:.3f} | "
+              f"{blocks[0]:.3f} / {blocks[1]:.3f} | {gap:.0e} |", flush=True)
+        out.append((p, k, n, dense[:2], blocks[:2], gap))
+    return out
+
+
 def main(families, draws, noise, one_process=False):
     parallel.enable(not one_process)
     rows = []
@@ -136,8 +194,12 @@ if __name__ == "__main__":
                         help="no second process for stage two's independent pieces")
     parser.add_argument("--scaling", action="store_true",
                         help="each draw at 2,000 samples and over ten times its span")
+    parser.add_argument("--normal-equations", action="store_true",
+                        help="the refinement's normal equations, dense against blocks")
     args = parser.parse_args()
-    if args.scaling:
+    if args.normal_equations:
+        normal_equations()
+    elif args.scaling:
         parallel.enable(not args.one_process)
         scaling(args.families, args.draws, args.noise)
     else:

@@ -303,6 +303,37 @@ def test_singular_arrow_systems_raise_as_the_dense_solve_does():
     assert np.all(np.isnan(covariance(eq, 2)))
 
 
+@pytest.mark.parametrize("where", ["coefficient", "start"])
+def test_normal_equations_with_a_non_finite_entry_solve_to_nan_on_both_paths(monkeypatch, where):
+    """A point whose sensitivities overflowed gives normal equations with NaN: the dense
+    solve and the solve by blocks both return NaN (Levenberg-Marquardt then rejects
+    the step), neither raises."""
+    from latentsindy._stage_two.fit import normal_equations
+
+    steps = []
+    for dense in (True, False):
+        monkeypatch.setattr(normal_equations, "DENSE", 10**6 if dense else 0)
+        rng = np.random.default_rng(7)
+        eq = NormalEquations(4, 30, 3)
+        jac = rng.normal(size=(30, 9, 7))
+        jac[12, 3, 1 if where == "coefficient" else 5] = np.nan
+        eq.add(jac, rng.normal(size=(30, 9)), np.arange(30)[:, None])
+        matrix = eq.matrix()
+        assert isinstance(matrix, normal_equations.ArrowMatrix) != dense
+        steps.append(solve(matrix, -eq.grad, 1e-3 * np.abs(matrix.diagonal())))
+    assert np.isnan(steps[0]).any() and np.isnan(steps[1]).all()
+
+
+def test_systems_beyond_a_hundred_unknowns_are_held_by_blocks():
+    """The switch between the two forms sits at ``DENSE`` = 100 unknowns, where their
+    costs cross (a two-state system of 40 segments dense, a three-state one by blocks)."""
+    from latentsindy._stage_two.fit.normal_equations import ArrowMatrix
+
+    assert DENSE == 100
+    assert isinstance(NormalEquations(6, 40, 2).matrix(), np.ndarray)  # 86 unknowns
+    assert isinstance(NormalEquations(10, 40, 3).matrix(), ArrowMatrix)  # 130 unknowns
+
+
 def test_arrow_blocks_take_only_consecutive_pairs_of_segments():
     """A block touching two segments that are not neighbours has no place in the arrow:
     an error that says so, not a wrong matrix."""
@@ -313,7 +344,7 @@ def test_arrow_blocks_take_only_consecutive_pairs_of_segments():
 
 @pytest.mark.parametrize("n_free", [0, 5])
 def test_term_selection_eliminates_large_starts_blocks_through_their_band(n_free):
-    """The coefficients' Schur complement as term selection makes it, of 400 segments
+    """The coefficients' Schur complement as term selection makes it, of 700 segments
     held by blocks: the same as eliminating the starts of the dense matrix."""
     from latentsindy._stage_two.fit.quadratic import _eliminated
 

@@ -183,7 +183,9 @@ class ArrowMatrix:
         """``(self + diag(damping))^-1 rhs`` by its structure: the starts eliminated
         through their banded block, the coefficients from the ``p x p`` Schur complement;
         by a general sparse LU where the starts' block is not positive definite to
-        working precision."""
+        working precision. As numpy's dense solve: NaN where an entry is not finite
+        (a point whose sensitivities overflowed: Levenberg-Marquardt rejects the step);
+        raises ``numpy.linalg.LinAlgError`` where the matrix is singular."""
         p = self.p
         columns = np.asarray(rhs, float).reshape(self.shape[0], -1)
         try:
@@ -191,6 +193,8 @@ class ArrowMatrix:
             inner = self.starts_solve(np.column_stack([coupling, columns[p:]]),
                                       None if damping is None else damping[p:])
         except np.linalg.LinAlgError:  # the general sparse solver
+            if not self._finite(columns, damping):
+                return np.full(np.shape(rhs), np.nan)
             matrix = self.tosparse()
             if damping is not None:
                 matrix = matrix + sps.diags(damping, format="csc")
@@ -207,6 +211,11 @@ class ArrowMatrix:
             np.zeros((0, columns.shape[1]))
         x_starts = inner[:, p:] - inner[:, :p] @ x_free
         return np.concatenate([x_free, x_starts]).reshape(np.shape(rhs))
+
+    def _finite(self, *others) -> bool:
+        """Whether every block, and every array of ``others`` (None: absent), is finite."""
+        arrays = (self.border, self.coupling, self.diag, self.upper, *others)
+        return all(bool(np.all(np.isfinite(a))) for a in arrays if a is not None)
 
 
 def _add(target, index, values):
