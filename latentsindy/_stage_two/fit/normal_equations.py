@@ -9,8 +9,9 @@ densely, which costs least there; beyond it they are held by their blocks
 coefficients, and the starts' block tridiagonal in segments) and solved through the
 starts' banded Cholesky factor and the coefficients' Schur complement: memory and time
 grow with the number of segments, not with its square or cube (a three-state system
-of 100 segments, 320 unknowns: assembly and a damped solve 1.2 and 0.2 ms by blocks,
-1.4 and 1.0 ms densely; at 86 unknowns the two cost the same).
+of 100 segments, 320 unknowns: assembly and two damped solves 0.4 and 0.4 ms by
+blocks, 0.6 and 2.0 ms densely; at 86 unknowns the two cost the same, at 130 the
+blocks save a quarter).
 """
 
 from __future__ import annotations
@@ -25,8 +26,8 @@ from scipy.sparse.linalg import MatrixRankWarning, spsolve
 from ..._core.banded import cholesky_upper, solve_upper
 
 # normal equations with up to this many unknowns are assembled and solved densely
-# (LAPACK), larger ones by their blocks (ArrowMatrix): the two cost the same at about
-# 100 unknowns (benchmarks/README.md, speed)
+# (LAPACK), larger ones by their blocks (ArrowMatrix): the two cost the same between
+# 86 and 130 unknowns (benchmarks/README.md, speed.py --normal-equations)
 DENSE = 100
 
 
