@@ -36,6 +36,14 @@ LOG_ROUGH = (-15.0, 25.0)  # bounds of log roughness (relative to the noise prec
 LEVEL_SD = 10.0
 NU = 1.0  # degrees of freedom of the adaptive (Student-t) prior on slope changes
 EM_STEPS = 5
+# A roughness search's line search gives up after LINE_STEPS trials (scipy's default
+# is 20). Its gradients are forward differences of a log evidence that carries rounding
+# noise of ~1e-5 nats, so they can be wrong by ~1e3 (step 1e-8): a line search that
+# has found no decrease in 8 trials (a step shrunk by 2^8 or more) is searching that
+# noise, and each trial costs one evaluation per varying term and one more. On
+# Hindmarsh-Rose at 5%, draw 0, 222 of 577 searches ended so; at 8 trials stage one
+# took 70 s instead of 105, with the same structures and score.
+LINE_STEPS = 8
 
 
 @dataclass(frozen=True)
@@ -247,7 +255,8 @@ class EquationModel:
                                   options={"xatol": 0.05})
             return np.array([res.x])
         res = minimize(objective, np.clip(x0, *LOG_ROUGH), method="L-BFGS-B",
-                       bounds=[LOG_ROUGH] * len(x0), options={"maxiter": 30, "ftol": 1e-8})
+                       bounds=[LOG_ROUGH] * len(x0),
+                       options={"maxiter": 30, "ftol": 1e-8, "maxls": LINE_STEPS})
         return np.asarray(res.x, float)
 
     # ------------------------------------------------------------------ fitting

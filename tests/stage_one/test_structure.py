@@ -136,26 +136,25 @@ def test_the_adaptive_evidence_chooses_between_the_searches_optima():
     assert coefs.term("x", "x").mean() == pytest.approx(-d.params["k"], rel=0.02)
 
 
-def test_two_adaptive_climbs_the_better_end_taken_the_other_a_doubt(monkeypatch):
-    """Two of the seed paper's cases at its seed 1 (1% noise), where the Gaussian
-    search's best structure and another of its optima start the adaptive climb apart.
+def test_the_papers_switching_cases_at_seed_1(monkeypatch):
+    """Two of the seed paper's cases at its seed 1 (1% noise).
 
-    Lorenz with a switching sigma: the generator proposes y and z^2 in dx/dt; the
-    thresholded constant fit's optimum (x constant, y and z varying) starts 21 nats
-    higher with adaptive priors but climbs to a wrong local optimum (y constant, z
-    varying), below the Gaussian best's end: dx/dt = sigma(t) (y - x), the truth, now
-    chosen (climbing from the better start alone lost it, without a doubt).
+    Lorenz with a switching sigma: with line searches of 20 trials on noisy
+    forward-difference gradients, the Gaussian search's best was x, y and z^2 varying,
+    and the adaptive climb from another start ended at a wrong local optimum 130 nats
+    below the truth: a doubt on a right answer. With 8 trials (as with the exact
+    gradient, tried and not adopted for its cost) the Gaussian best is the truth,
+    dx/dt = sigma(t) (y - x), and no doubt is left.
 
     The oscillator with a switching A (dx/dt = A(t) y): the Gaussian best (a varying
     constant and a varying y) climbs to a varying constant beside a constant y, 4.4
     nats above the truth, where the other start ends. The evidence cannot tell these
-    apart by much: both cases carry the doubt, and the band holds both ends."""
+    apart by much: the doubt is said, and the band holds both ends."""
     from pathlib import Path
 
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
     from _paper_cases import lorenz_cases, make_data, oscillator_cases
 
-    apart = "the structure search from another start ended at"
     case = next(c for c in lorenz_cases() if c.name == "lorenz sigma switch")
     data, _ = make_data(case, seed=1)
     model = DynamicSINDy(ps.PolynomialLibrary(degree=2), verbose=False, seed=1)
@@ -163,8 +162,9 @@ def test_two_adaptive_climbs_the_better_end_taken_the_other_a_doubt(monkeypatch)
     names = model.feature_names_
     assert [names[j] for j in np.flatnonzero(model.support_[0])] == ["x", "y"]
     assert [names[j] for j in np.flatnonzero(model.time_varying_[0])] == ["x", "y"]
-    assert [d.split(":")[0] for d in model.doubts_ if apart in d] == ["dx/dt"]
+    assert not [d for d in model.doubts_ if d.startswith("dx/dt")]
 
+    apart = "the structure search from another start ended at"
     case = next(c for c in oscillator_cases() if c.name == "oscillator A switch")
     data, _ = make_data(case, seed=1)
     model = DynamicSINDy(ps.PolynomialLibrary(degree=2), verbose=False, seed=1)
