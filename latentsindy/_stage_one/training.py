@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .._core.threads import single_thread
+from .._core.threads import flush_denormals, single_thread
 from .._core.timing import timed
 from .decisions import between_phases
 from .flat_adam import FlatAdam
@@ -161,7 +161,7 @@ def _train_phase(model, opt, phase, steps, data, options, bar, verbose):
     if supported(model, theta, xdot, weights, inputs):
         by_hand = NumpyStep(model, theta, xdot, weights, inputs, noise_var, options.threshold,
                             free_rows)
-        with single_thread():
+        with single_thread(), flush_denormals():
             return _steps(model, opt, phase, steps, data, options, bar, verbose, by_hand)
     return _steps(model, opt, phase, steps, data, options, bar, verbose, None)
 

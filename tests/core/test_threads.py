@@ -1,0 +1,46 @@
+"""Threads and floating-point modes for stage one's small float32 arithmetic."""
+
+import numpy as np
+import pytest
+import torch
+
+from latentsindy._core.threads import flush_denormals, single_thread
+
+# half of float32's smallest normal number: a denormal
+_DENORMAL = np.float32(np.finfo(np.float32).tiny / 2)
+
+
+def _cannot_flush():
+    supported = torch.set_flush_denormal(True)
+    torch.set_flush_denormal(False)
+    return not supported
+
+
+def test_a_denormal_survives_outside_the_block():
+    assert _DENORMAL > 0
+    assert np.float32(_DENORMAL * np.float32(1.0)) == _DENORMAL
+
+
+@pytest.mark.skipif(_cannot_flush(), reason="this CPU cannot flush denormals")
+def test_denormals_are_zero_inside_the_block_and_back_after():
+    with flush_denormals():
+        inside = (np.array([_DENORMAL]) * np.float32(1.0))[0]
+        normal = (np.array([np.float32(1e-30)]) * np.float32(1.0))[0]
+    after = (np.array([_DENORMAL]) * np.float32(1.0))[0]
+    assert inside == 0.0
+    assert normal == np.float32(1e-30)  # normal numbers are untouched
+    assert after == _DENORMAL
+
+
+@pytest.mark.skipif(_cannot_flush(), reason="this CPU cannot flush denormals")
+def test_the_mode_is_restored_when_the_block_raises():
+    with pytest.raises(RuntimeError, match="inside"), flush_denormals():
+        raise RuntimeError("inside")
+    assert (np.array([_DENORMAL]) * np.float32(1.0))[0] == _DENORMAL
+
+
+def test_single_thread_restores_torch_threads():
+    before = torch.get_num_threads()
+    with single_thread():
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
