@@ -39,6 +39,18 @@ def test_the_mode_is_restored_when_the_block_raises():
     assert (np.array([_DENORMAL]) * np.float32(1.0))[0] == _DENORMAL
 
 
+@pytest.mark.skipif(_cannot_flush(), reason="this CPU cannot flush denormals")
+def test_a_thread_that_flushed_before_still_flushes_after():
+    torch.set_flush_denormal(True)
+    try:
+        with flush_denormals():
+            pass
+        assert (np.array([_DENORMAL]) * np.float32(1.0))[0] == 0.0
+    finally:
+        torch.set_flush_denormal(False)
+    assert (np.array([_DENORMAL]) * np.float32(1.0))[0] == _DENORMAL
+
+
 def test_single_thread_restores_torch_threads():
     before = torch.get_num_threads()
     with single_thread():
