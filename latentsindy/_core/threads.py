@@ -29,6 +29,15 @@ def single_thread():
         torch.set_num_threads(previous)
 
 
+_HALF_TINY = np.array([np.finfo(np.float32).tiny / 2], dtype=np.float32)  # a denormal
+
+
+def _flushing() -> bool:
+    """Whether this thread flushes denormals now (torch has no getter: a denormal
+    times one reads zero when it does)."""
+    return bool((_HALF_TINY * np.float32(1.0))[0] == 0)
+
+
 @contextlib.contextmanager
 def flush_denormals():
     """Flush float denormals to zero on this thread inside the block (FTZ/DAZ).
@@ -49,12 +58,3 @@ def flush_denormals():
     finally:
         if flushing and not before:
             torch.set_flush_denormal(False)
-
-
-_HALF_TINY = np.array([np.finfo(np.float32).tiny / 2], dtype=np.float32)  # a denormal
-
-
-def _flushing() -> bool:
-    """Whether this thread flushes denormals now (torch has no getter: a denormal
-    times one reads zero when it does)."""
-    return bool((_HALF_TINY * np.float32(1.0))[0] == 0)

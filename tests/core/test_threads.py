@@ -10,6 +10,11 @@ from latentsindy._core.threads import flush_denormals, single_thread
 _DENORMAL = np.float32(np.finfo(np.float32).tiny / 2)
 
 
+def _times_one(value):
+    """``value`` times one in float32 array arithmetic on this thread."""
+    return (np.array([value], dtype=np.float32) * np.float32(1.0))[0]
+
+
 def _cannot_flush():
     supported = torch.set_flush_denormal(True)
     torch.set_flush_denormal(False)
@@ -18,15 +23,15 @@ def _cannot_flush():
 
 def test_a_denormal_survives_outside_the_block():
     assert _DENORMAL > 0
-    assert np.float32(_DENORMAL * np.float32(1.0)) == _DENORMAL
+    assert _times_one(_DENORMAL) == _DENORMAL
 
 
 @pytest.mark.skipif(_cannot_flush(), reason="this CPU cannot flush denormals")
 def test_denormals_are_zero_inside_the_block_and_back_after():
     with flush_denormals():
-        inside = (np.array([_DENORMAL]) * np.float32(1.0))[0]
-        normal = (np.array([np.float32(1e-30)]) * np.float32(1.0))[0]
-    after = (np.array([_DENORMAL]) * np.float32(1.0))[0]
+        inside = _times_one(_DENORMAL)
+        normal = _times_one(np.float32(1e-30))
+    after = _times_one(_DENORMAL)
     assert inside == 0.0
     assert normal == np.float32(1e-30)  # normal numbers are untouched
     assert after == _DENORMAL
@@ -36,7 +41,7 @@ def test_denormals_are_zero_inside_the_block_and_back_after():
 def test_the_mode_is_restored_when_the_block_raises():
     with pytest.raises(RuntimeError, match="inside"), flush_denormals():
         raise RuntimeError("inside")
-    assert (np.array([_DENORMAL]) * np.float32(1.0))[0] == _DENORMAL
+    assert _times_one(_DENORMAL) == _DENORMAL
 
 
 @pytest.mark.skipif(_cannot_flush(), reason="this CPU cannot flush denormals")
@@ -45,10 +50,10 @@ def test_a_thread_that_flushed_before_still_flushes_after():
     try:
         with flush_denormals():
             pass
-        assert (np.array([_DENORMAL]) * np.float32(1.0))[0] == 0.0
+        assert _times_one(_DENORMAL) == 0.0
     finally:
         torch.set_flush_denormal(False)
-    assert (np.array([_DENORMAL]) * np.float32(1.0))[0] == _DENORMAL
+    assert _times_one(_DENORMAL) == _DENORMAL
 
 
 def test_single_thread_restores_torch_threads():
