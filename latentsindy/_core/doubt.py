@@ -14,6 +14,8 @@ KINDS = {
     "not scored": "the system could not be scored on held-out data",
     "score": "the system does not reproduce held-out data down to their noise",
     "not converged": "refinement by integration did not converge",
+    "not continuous": "the fitted integration segments do not meet: no trajectory of the "
+                      "system, and its terms were not checked",
     "insignificant": "a hidden-equation coefficient is within two standard errors of zero",
     "recording constant": "a constant differs between recordings",
     "exchangeable term": "a term can be exchanged for another with almost no loss of fit",

@@ -1,6 +1,7 @@
 """The held-out score's reference: what a right system would score at this sampling,
 and the checks that read the score against it."""
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -25,7 +26,7 @@ from latentsindy._stage_two.fit.held_out import (
     by_sample,
     cross_validate,
 )
-from latentsindy._stage_two.fit.refine import Problem, RefineOptions
+from latentsindy._stage_two.fit.refine import CONTINUOUS, Problem, RefineOptions
 
 A, B, G, D = 1.0, 0.1, 1.5, 0.075
 
@@ -49,6 +50,21 @@ def test_a_right_system_on_dense_data_is_expected_to_score_about_one():
     data, guesses = lv_problem(0.01)
     problem = Problem(lv_system(TRUTH_ROW), [data.t], [data.x[:, :1]], guesses)
     assert expected_score(problem, problem.fit()) == pytest.approx(1.0, abs=0.25)
+
+
+def test_segments_that_do_not_join_are_not_simulated():
+    """A fit whose segments jump by several noise levels is no trajectory of its
+    system: there is no right system's data to simulate, so there is no reference (its
+    replicates' refits would trade the data for continuity and read far above 1)."""
+    data, guesses = lv_problem(0.01)
+    problem = Problem(lv_system(TRUTH_ROW), [data.t], [data.x[:, :1]], guesses)
+    fit = problem.fit()
+    assert fit.gap < 0.01 and fit.continuous
+    starts = fit.starts.copy()
+    starts[1::2, 0] += 5 * problem.sigma[0]  # every other segment moved by 5 noise levels
+    broken = replace(fit, starts=starts, gap=problem._gap(fit.system, starts))
+    assert broken.gap > CONTINUOUS and not broken.continuous
+    assert expected_score(problem, broken) is None
 
 
 def test_a_panel_is_held_out_by_recording_and_a_right_law_is_expected_near_one():

@@ -728,8 +728,9 @@ def test_rank_prefers_the_smallest_within_one_standard_error():
 def test_doubts_name_each_failed_check():
     """A refined system is doubted when its held-out score is above the noise by more
     than the slack (two standard errors), when refinement hit its iteration limit, and
-    for each hidden-equation coefficient within two standard errors of zero; a system
-    that passes all three has no doubts."""
+    for each hidden-equation coefficient within two standard errors of zero, and when
+    its segments end a noise level or more from the next one's start; a system that
+    passes all four has no doubts."""
     ok = Refinement(0.1, 0.05, 0.0, 10, 5, "converged")
     h = sp.Symbol("h", real=True)
     terms = (Term("h", h, -1.5, 0.01, False), Term("x", h, 1.0, math.nan, True))
@@ -743,6 +744,11 @@ def test_doubts_name_each_failed_check():
     found = doubts(1.0, 0.03, ok, weak, ["h"])
     assert len(found) == 1 and "1 hidden-equation coefficient(s)" in found[0]
     assert "dh/dt: h**2" in found[0]
+    torn = dataclasses.replace(ok, continuity_gap=1.5)  # segments 1.5 noise levels apart
+    found = doubts(1.0, 0.03, torn, terms, ["h"])
+    assert [d.kind for d in found] == ["not continuous"] and "1.5 noise levels" in found[0]
+    near = dataclasses.replace(ok, continuity_gap=0.9)
+    assert doubts(1.0, 0.03, near, terms, ["h"]) == ()
 
 
 def test_ambiguities_report_a_term_the_data_cannot_tell_from_another():

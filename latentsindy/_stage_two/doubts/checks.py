@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..._core.doubt import Doubt
+from ..fit.refine import CONTINUOUS
 
 # A closed system reproduces held-out data when its score (held-out misfit in noise
 # variances) is ~1. The noise level is itself estimated from the data (to ~10%), so a
@@ -44,9 +45,10 @@ def reproduces(score, score_se, expected=1.0) -> bool:
 
 
 def doubts(score, score_se, refinement, terms, hidden, unscored=None, expected=None):
-    """The checks a refined system fails, each as a sentence with its remedy;
-    ``unscored`` is why it has no score ("not judged": ``max_time`` ran out first);
-    ``expected``: a right system's simulated score here (None: about 1)."""
+    """The checks a refined system fails, each as a sentence with its remedy (its
+    segments apart: :attr:`..fit.refine.Fit.continuous`); ``unscored`` is why it has
+    no score ("not judged": ``max_time`` ran out first); ``expected``: a right system's
+    simulated score here (None: about 1)."""
     found = []
     if unscored == "not judged":
         found.append(Doubt("not scored", "the closed system was not scored on held-out "
@@ -66,6 +68,15 @@ def doubts(score, score_se, refinement, terms, hidden, unscored=None, expected=N
             f"{score:.3g} +- {score_se:.2g}, expected {reference}): a term or a hidden "
             "state is probably missing; try a richer library or closure_library, or more "
             "data"))
+    if not refinement.continuity_gap <= CONTINUOUS:
+        found.append(Doubt(
+            "not continuous",
+            f"the closed system's integration segments end up to "
+            f"{refinement.continuity_gap:.3g} noise levels from where the next one starts: "
+            "the fit is no trajectory of the system, so its terms (missing, weak, "
+            "exchangeable, beyond the library) and its score's reference were not checked; "
+            "a term or a hidden state is probably missing: try a richer library or "
+            "closure_library, or more hidden states"))
     if refinement.status != "converged":
         found.append(Doubt(
             "not converged",

@@ -41,6 +41,13 @@ _PENALTY = (1e2, 1e4)  # continuity weight: first pass, then the enforcing pass
 # the data is a break in the trajectory, not a gap left by the penalty (segments that
 # join leave jumps below 1e-3 of it; shrunk piecewise-constant states jump by 0.5-2x it).
 JOIN = 0.05
+# Segments whose ends lie further than this from the next segment's start (largest
+# continuity gap, in noise levels) are no trajectory of their system: the continuity
+# penalty aims below _GAP, and a right system's fit meets it. A fit left with gaps of a
+# noise level or more is one the closed system cannot follow (Hindmarsh-Rose at 1%
+# noise, draws 0 and 3: gaps of 11 and 12 noise levels, misfits of 900-2,200 noise
+# variances), and checks that refit it would measure the fit's tearing, not its terms.
+CONTINUOUS = 1.0
 
 
 @dataclass(frozen=True)
@@ -93,6 +100,12 @@ class Fit:
     covariance: np.ndarray = field(repr=False)  # of the free coefficients
     status: str = "converged"
     rho: float = _PENALTY[-1]  # continuity weight of the last pass
+
+    @property
+    def continuous(self) -> bool:
+        """Whether consecutive segments meet within ``CONTINUOUS`` noise levels: the
+        fit is one trajectory of its system (False for a NaN gap)."""
+        return bool(self.gap <= CONTINUOUS)
 
     @property
     def residual_variance(self) -> float:
