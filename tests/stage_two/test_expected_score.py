@@ -19,6 +19,7 @@ from latentsindy._stage_two.doubts.checks import (
     reproduces,
     weak_check_doubts,
 )
+from latentsindy._stage_two.fit import expected_score as es
 from latentsindy._stage_two.fit.expected_score import _noise, _with_data, expected_score
 from latentsindy._stage_two.fit.held_out import (
     SHORT_RECORDING,
@@ -65,6 +66,31 @@ def test_segments_that_do_not_join_are_not_simulated():
     broken = replace(fit, starts=starts, gap=problem._gap(fit.system, starts))
     assert broken.gap > CONTINUOUS and not broken.continuous
     assert expected_score(problem, broken) is None
+
+
+def test_a_replicate_refitted_far_from_its_noise_leaves_no_reference(monkeypatch):
+    """Each replicate's refit starts at the system that simulated it, so it ends within
+    its noise's misfit (LM only lowers the cost; measured 0.99 of it here); a refit that
+    ends more than ``REFITTED`` times above has lost that truth, and then there is no
+    reference. Shown by lowering the bound below what a refit reaches."""
+    data, guesses = lv_problem(0.01)
+    problem = Problem(lv_system(TRUTH_ROW), [data.t], [data.x[:, :1]], guesses)
+    fit = problem.fit()
+    ratios = []
+
+    def scored(synthetic, refit):  # each replicate's refit, as it is scored
+        truth = synthetic.equations(fit.system, fit.starts, np.ones(synthetic.n_segments),
+                                    fit.rho, jacobian=False).data_cost
+        ratios.append(refit.data_cost / truth)
+        return cross_validate(synthetic, refit)
+
+    monkeypatch.setattr(es, "cross_validate", scored)
+    assert expected_score(problem, fit) == pytest.approx(1.0, abs=0.25)
+    assert len(ratios) == es.REPLICATES and max(ratios) <= 1.0 < es.REFITTED
+    monkeypatch.setattr(es, "REFITTED", 0.5 * min(ratios))
+    ratios.clear()
+    assert expected_score(problem, fit) is None
+    assert ratios == []  # the first replicate that misses decides: none is scored
 
 
 def test_a_panel_is_held_out_by_recording_and_a_right_law_is_expected_near_one():
