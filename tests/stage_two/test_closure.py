@@ -11,6 +11,7 @@ import sympy as sp
 from scipy.integrate import solve_ivp
 
 from latentsindy import systems
+from latentsindy._stage_two.propose import smoother
 from latentsindy._stage_two.propose.closure import (
     ClosureFit,
     fit_closure,
@@ -202,6 +203,28 @@ def test_smoother_recovers_a_varying_coefficient():
     resid = fit.hidden[0][:, 0] - truth
     assert 1 - resid.var() / truth.var() > 0.9999
     assert abs(resid.mean()) < 1e-3
+
+
+def test_the_smoothers_operators_are_made_once_per_sampling(monkeypatch):
+    """The smoother's operators (segment integrals, anchors, knot interpolation) depend
+    only on the sample times and the knot spacing: a second fit on the same times (in
+    another array) reuses them, and the fit is the same to the bit; other times or
+    another spacing get their own, and only the last ``_KEEP`` samplings are held."""
+    monkeypatch.setattr(smoother, "_OPERATORS", {})
+    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=600)
+    x = data.x_clean[:, :1]
+    st = single_term(1, 1, 0, 0, np.zeros((1, 1), dtype=bool))
+    first = fit_hidden(st, [x], [x], [data.t], _sigma(x), 2)
+    (made,) = smoother._OPERATORS.values()
+    again = fit_hidden(st, [x], [x], [data.t.copy()], _sigma(x), 2)
+    assert smoother._OPERATORS[next(iter(smoother._OPERATORS))] is made
+    assert np.array_equal(first.hidden[0], again.hidden[0])
+    fresh = smoother._trajectory_operators(np.asarray(data.t, float), 2)
+    for held, new in zip(made[0], fresh, strict=True):
+        assert (held != new).nnz == 0
+    fit_hidden(st, [x], [x], [data.t], _sigma(x), 3)
+    fit_hidden(st, [x[:500]], [x[:500]], [data.t[:500]], _sigma(x), 2)
+    assert len(smoother._OPERATORS) == smoother._KEEP
 
 
 def test_smoother_recovers_a_shared_hidden_state():
