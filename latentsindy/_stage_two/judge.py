@@ -34,6 +34,7 @@ from .verdict import (
     first_fits,
     needs_every_sample,
     on_every_sample,
+    on_whole,
     selected_and_scored,
     unscored,
 )
@@ -75,6 +76,17 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     (``BLIND_CONTEND``). When the best selected system's misfit shows the noise lower
     than the level judged in, everything is judged again in the lower level, once
     (``settled``: it was). Returns ``rank``'s result."""
+    ordered, uncertain = _judged(proposals, ctx, options, max_hidden, nested, blind, settled)
+    # a long recording's hypotheses are fitted on its windows, and only those that
+    # contend on every sample; where none was scored, the one chosen still needs it
+    while ordered and not ordered[0].scored and ordered[0].whole is not None:
+        chosen = on_whole(ordered[0])
+        ordered = ordered[1:] if chosen is None else [chosen, *ordered[1:]]
+    return ordered, uncertain
+
+
+def _judged(proposals, ctx: Context, options, max_hidden, nested, blind, settled):
+    """:func:`judge_all`, but an unscored first verdict may be fitted on windows."""
     options = options or RefineOptions()
     progress(f"stage two: {len(proposals)} hypotheses to fit")
     # each refined in order, given up against the best before it (on a CPU two at a
@@ -83,8 +95,8 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     best = min((t.fit.residual_variance for t in trials), default=np.inf)
     noise = _noise_from_fit(trials, best) if options.noise is None else None
     if noise is not None and not spent("the judgement in the noise level of the best fit"):
-        return judge_all(proposals, ctx, replace(options, noise=noise), max_hidden, nested,
-                         blind, settled)
+        return _judged(proposals, ctx, replace(options, noise=noise), max_hidden, nested,
+                       blind, settled)
     if best > RATE_TRIGGER and max_hidden >= 2 and not spent("hidden states' rates"):
         progress("no first-order law reproduces the data: hidden states' rates")
         trials += first_fits(_rate_candidates(proposals, ctx), ctx, options, trials)
@@ -130,8 +142,8 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
         noise = _noise_from_fit(scored, final)
         step = "the judgement in the noise level of the best selected fit"
         if noise is not None and not spent(step):
-            again = judge_all(proposals, ctx, replace(options, noise=noise), max_hidden,
-                              nested, blind, settled=True)
+            again = _judged(proposals, ctx, replace(options, noise=noise), max_hidden,
+                            nested, blind, True)
             if not expired():
                 return again
             passed(step)  # max_time ran out in it: this complete judgement stands

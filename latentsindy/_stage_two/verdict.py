@@ -9,7 +9,7 @@ shooting (:mod:`.refine`); :func:`finish` selects its terms on the integrated li
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import sympy as sp
@@ -52,6 +52,9 @@ class Verdict:
     # the same units in the same order for every verdict of one discovery
     # (:func:`.ranking.rank` pairs them)
     errors: np.ndarray | None = None
+    # an unscored verdict fitted on the windows of a long recording: its whole problem
+    # (:func:`on_whole` fits it there where it is chosen)
+    whole: Problem | None = None
 
     @property
     def system(self) -> ParametricSystem:
@@ -133,10 +136,13 @@ def build(p: Proposal, ctx: Context):
 @dataclass
 class Trial:
     proposal: Proposal
-    problem: Problem
+    problem: Problem  # what ``fit`` was made on: the windows of a long recording
     fit: Fit
     candidates: np.ndarray
     initial_misfit: float
+    # a long recording's whole problem, where ``problem`` is its windows
+    # (:func:`.fit.windows.judged_part`): only a contending system is fitted on it
+    whole: Problem | None = None
 
 
 def first_fit(p: Proposal, ctx: Context, options, best=np.inf, watch=None) -> Trial | None:
@@ -149,14 +155,20 @@ def first_fit(p: Proposal, ctx: Context, options, best=np.inf, watch=None) -> Tr
                else HOPELESS * max(best, 1.0))
     try:
         with stage("refinement"):
-            problem = Problem(system, ctx.times, ctx.observed, guesses, options)
+            whole = Problem(system, ctx.times, ctx.observed, guesses, options)
+            # a long recording: fitted on its windows, as its terms are selected and
+            # scored there; a contending system is fitted on every sample afterwards
+            # (on_every_sample), a rejected one never
+            part = judged_part(whole)
+            problem = whole if part is None else part
             initial = problem.equations(system, problem.initial_starts,
                                         np.ones(problem.n_segments), 1.0, jacobian=False)
             fit = problem.fit(system, give_up=give_up, watch=watch)
     except BlowUp:
         return None  # the proposal's system cannot even be integrated from its guesses
-    return Trial(p, problem, fit, candidates, float(np.sqrt(initial.data_cost /
-                                                             problem.n_data)))
+    return Trial(p, problem, fit, candidates,
+                 float(np.sqrt(initial.data_cost / problem.n_data)),
+                 None if part is None else whole)
 
 
 def first_fits(proposals, ctx: Context, options, trials=()) -> list[Trial]:
@@ -225,9 +237,10 @@ def selected_and_scored(trial: Trial, whole: bool = True):
     before it started or while its folds were refitted).
 
     On a long recording the terms are selected and the score is taken on windows of it
-    (:func:`.fit.windows.judged_part`); the fit is then that of the windows, and
-    :func:`on_every_sample` (made here unless ``whole`` is False) refits it on every
-    sample."""
+    (:func:`.fit.windows.judged_part`): where the trial was first fitted on every sample
+    (a restatement), the windows' own fit of it is made first; the fit is then that of
+    the windows, and :func:`on_every_sample` (made here unless ``whole`` is False) fits
+    it on every sample."""
     if expired():
         return "not judged"
     # the pool includes the system's own terms, so a term swapped out can come back
@@ -254,10 +267,14 @@ def selected_and_scored(trial: Trial, whole: bool = True):
 
 def on_every_sample(trial: Trial, outcome):
     """``outcome`` of :func:`selected_and_scored` with its fit on every sample of the
-    trial's recording: where the fit was made on windows of it, the selected system
-    refitted on all its segments from the first fit's starts (where selection made no
-    move, the first fit is that fit), or why it has none ("blew up", "does not join",
-    "not judged": the discovery's ``max_time`` was spent before or during a refit)."""
+    trial's recording, or why it has none ("blew up", "does not join", "not judged":
+    the discovery's ``max_time`` was spent before or during a refit). A trial first
+    fitted on the windows (``trial.whole``) has its selected system fitted on every
+    segment, from the windows' fitted starts and the guesses elsewhere; one first
+    fitted on every sample and selected on windows is refitted from the first fit's
+    starts (where selection made no move, the first fit is that fit)."""
+    if trial.whole is not None:
+        return _on_whole(trial, outcome)
     if not _on_windows(trial, outcome):
         return outcome
     fit, history, cv, se, errors = outcome
@@ -278,8 +295,50 @@ def on_every_sample(trial: Trial, outcome):
     return fit, history, cv, se, errors
 
 
+def _on_whole(trial: Trial, outcome):
+    """:func:`on_every_sample` of a trial fitted on windows (``trial.whole`` set)."""
+    if isinstance(outcome, str):
+        return outcome
+    fit, history, cv, se, errors = outcome
+    if expired():
+        return "not judged"
+    try:
+        fit = whole_fit(trial.whole, trial.problem.rows, fit)
+        if expired():  # the fit may have been cut short: not its system's fit
+            return "not judged"
+        if not trial.whole.joins(fit):
+            return "does not join"
+    except BlowUp:
+        return "blew up"
+    return fit, history, cv, se, errors
+
+
+def whole_fit(whole: Problem, rows, fit: Fit) -> Fit:
+    """``fit`` (made on the windows of ``whole`` whose segments are ``rows``) fitted on
+    every segment of ``whole``: its system, started at its own starts on the windows
+    and at the guesses elsewhere. Raises :class:`.fit.shooting.BlowUp`."""
+    starts = whole.initial_starts.copy()
+    starts[rows] = fit.starts
+    with stage("refinement"):
+        return whole.fit(fit.system, starts)
+
+
+def on_whole(verdict: Verdict) -> Verdict | None:
+    """An unscored verdict fitted on the windows of a long recording (``whole`` set),
+    fitted on every sample (:func:`whole_fit`; its score stays the in-sample misfit),
+    for a result that has nothing better; None where it blows up there."""
+    try:
+        fit = whole_fit(verdict.whole, verdict.problem.rows, verdict.fit)
+    except BlowUp:
+        return None
+    return replace(verdict, fit=fit, problem=verdict.whole, cv=fit.residual_variance,
+                   whole=None)
+
+
 def needs_every_sample(trial: Trial, outcome) -> bool:
     """Whether :func:`on_every_sample` has a refit to make for ``outcome``."""
+    if trial.whole is not None:
+        return not isinstance(outcome, str)
     return _on_windows(trial, outcome) and bool(outcome[1])
 
 
@@ -295,7 +354,10 @@ def finished(trial: Trial, outcome) -> Verdict:
     if isinstance(outcome, str):
         return unscored(trial, outcome)
     fit, history, cv, se, errors = outcome
-    return Verdict(trial.proposal, fit, trial.problem, cv, se, history, trial.initial_misfit,
+    whole = trial.whole
+    problem = (whole if whole is not None and len(fit.starts) == whole.n_segments
+               else trial.problem)
+    return Verdict(trial.proposal, fit, problem, cv, se, history, trial.initial_misfit,
                    trial.candidates | trial.fit.system.free, errors)
 
 
@@ -303,5 +365,5 @@ def unscored(trial: Trial, why: str) -> Verdict:
     """A verdict without a held-out score: ``cv`` holds the in-sample misfit (for
     display only; ``rank`` never compares it with held-out scores)."""
     return Verdict(trial.proposal, trial.fit, trial.problem, trial.fit.residual_variance, 0.0,
-                   (why,), trial.initial_misfit)
+                   (why,), trial.initial_misfit, whole=trial.whole)
 
