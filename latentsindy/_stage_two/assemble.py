@@ -186,8 +186,9 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
         notes.append(f"long recording ({total} samples): the terms were chosen, and the "
                      "held-out scores (this system's and the alternatives') taken, on "
                      f"{WINDOWS} windows of about {round(used / WINDOWS)} samples "
-                     f"spread over it ({used} samples in all{pieces}); the coefficients and "
-                     "their errors come from a fit to every sample")
+                     f"spread over it ({used} samples in all{pieces}); this system's "
+                     "coefficients and their errors come from a fit to every sample (the "
+                     "alternatives' from the windows)")
     result = HiddenDiscovery(
         ctx.times[0], ctx.observed[0], hidden[0], stds[0][:, system.n_observed:],
         tuple(observed), tuple(names), states, terms, coefs, score, score_se,

@@ -32,8 +32,6 @@ from .verdict import (
     build,
     finished,
     first_fits,
-    needs_every_sample,
-    on_every_sample,
     on_whole,
     selected_and_scored,
     unscored,
@@ -76,17 +74,6 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     (``BLIND_CONTEND``). When the best selected system's misfit shows the noise lower
     than the level judged in, everything is judged again in the lower level, once
     (``settled``: it was). Returns ``rank``'s result."""
-    ordered, uncertain = _judged(proposals, ctx, options, max_hidden, nested, blind, settled)
-    # a long recording's hypotheses are fitted on its windows, and only those that
-    # contend on every sample; where none was scored, the one chosen still needs it
-    while ordered and not ordered[0].scored and ordered[0].whole is not None:
-        chosen = on_whole(ordered[0])
-        ordered = ordered[1:] if chosen is None else [chosen, *ordered[1:]]
-    return ordered, uncertain
-
-
-def _judged(proposals, ctx: Context, options, max_hidden, nested, blind, settled):
-    """:func:`judge_all`, but an unscored first verdict may be fitted on windows."""
     options = options or RefineOptions()
     progress(f"stage two: {len(proposals)} hypotheses to fit")
     # each refined in order, given up against the best before it (on a CPU two at a
@@ -95,8 +82,8 @@ def _judged(proposals, ctx: Context, options, max_hidden, nested, blind, settled
     best = min((t.fit.residual_variance for t in trials), default=np.inf)
     noise = _noise_from_fit(trials, best) if options.noise is None else None
     if noise is not None and not spent("the judgement in the noise level of the best fit"):
-        return _judged(proposals, ctx, replace(options, noise=noise), max_hidden, nested,
-                       blind, settled)
+        return judge_all(proposals, ctx, replace(options, noise=noise), max_hidden, nested,
+                         blind, settled)
     if best > RATE_TRIGGER and max_hidden >= 2 and not spent("hidden states' rates"):
         progress("no first-order law reproduces the data: hidden states' rates")
         trials += first_fits(_rate_candidates(proposals, ctx), ctx, options, trials)
@@ -120,16 +107,10 @@ def _judged(proposals, ctx: Context, options, max_hidden, nested, blind, settled
     # 14 free took 1.4 s, 6 free 0.3 s), so neither process ends on a long one alone
     progress(f"selecting terms and scoring on held-out data: {len(finishing)} of "
              f"{len(trials)} fitted hypotheses contend")
-    outcomes = map_on(options.device, lambda t: selected_and_scored(t, whole=False),
-                      finishing, cost=[t.fit.system.n_free for t in finishing])
-    # on a long recording, judged on windows: the selected systems refitted on every
-    # sample, side by side too (made inside the first map, a process could be left with
-    # a long refit at the end while the other waits)
-    pending = [(t, o) for t, o in zip(finishing, outcomes, strict=True)
-               if needs_every_sample(t, o)]
-    refitted = iter(map_on(options.device, lambda pair: on_every_sample(*pair), pending))
-    outcomes = iter(next(refitted) if needs_every_sample(t, o) else on_every_sample(t, o)
-                    for t, o in zip(finishing, outcomes, strict=True))
+    outcomes = iter(map_on(options.device, selected_and_scored, finishing,
+                           cost=[t.fit.system.n_free for t in finishing]))
+    # on a long recording the verdicts are the windows' (their first fits, selection and
+    # scores were made there): only the one chosen is fitted on every sample (_ranked)
     verdicts = [finished(t, next(outcomes)) if c else unscored(t, "rejected")
                 for t, c in zip(trials, contending, strict=True)]
     scored = [v for v in verdicts if v.scored]
@@ -142,8 +123,8 @@ def _judged(proposals, ctx: Context, options, max_hidden, nested, blind, settled
         noise = _noise_from_fit(scored, final)
         step = "the judgement in the noise level of the best selected fit"
         if noise is not None and not spent(step):
-            again = _judged(proposals, ctx, replace(options, noise=noise), max_hidden,
-                            nested, blind, True)
+            again = judge_all(proposals, ctx, replace(options, noise=noise), max_hidden,
+                              nested, blind, settled=True)
             if not expired():
                 return again
             passed(step)  # max_time ran out in it: this complete judgement stands
@@ -151,11 +132,11 @@ def _judged(proposals, ctx: Context, options, max_hidden, nested, blind, settled
     if left:
         passed(f"{left} of {len(finishing)} contending hypotheses not scored")
     if expired():  # max_time is spent: a winner is not restated
-        ordered, uncertain = rank(verdicts)
+        ordered, uncertain, verdicts = _ranked(verdicts)
         if ordered and ordered[0].scored:
             passed("restatements of the winner")
         return ordered, uncertain
-    ordered, uncertain = rank(verdicts)
+    ordered, uncertain, verdicts = _ranked(verdicts)
     reduced = None
     if ordered and ordered[0].scored and not ordered[0].proposal.nested:
         winner = ordered[0]
@@ -166,25 +147,24 @@ def _judged(proposals, ctx: Context, options, max_hidden, nested, blind, settled
                 # same dynamics with one state fewer and as many parameters (its
                 # initial value became the substitution's constant)
                 verdicts = [v for v in verdicts if v is not winner]
-            verdicts = verdicts + [reduced]
-            ordered, uncertain = rank(verdicts)
+            ordered, uncertain, verdicts = _ranked(verdicts + [reduced])
             winner = ordered[0]
     if ordered and ordered[0].scored and not ordered[0].proposal.nested:
         # the winner restated: one hidden state where its rate law has a first integral,
         # or shifted to absorb its observed terms; and as the coefficient of another term
         winner = ordered[0]
         # (a system reduced by a first integral has no closure of its own to shift in)
-        restated = [restate.regauged(winner, ctx, options)] if winner is reduced else [
+        reduced_won = reduced is not None and winner.proposal is reduced.proposal
+        restated = [restate.regauged(winner, ctx, options)] if reduced_won else [
             restate.integrated(winner, options) or restate.shifted(winner, ctx, options),
             restate.regauged(winner, ctx, options)]
         restated = [v for v in restated if v is not None]
         if restated:
-            return rank(verdicts + restated)
+            return _ranked(verdicts + restated)[:2]
     elif ordered and ordered[0].scored:
         restated = restate.nested_shifted(ordered[0], ctx, options)
         if restated is not None:
-            verdicts = verdicts + [restated]
-            ordered, uncertain = rank(verdicts)
+            ordered, uncertain, verdicts = _ranked(verdicts + [restated])
         lifted = ordered[0]
         reduced = restate.reduced(lifted, options) if lifted.proposal.nested else None
         if reduced is not None:
@@ -192,8 +172,31 @@ def _judged(proposals, ctx: Context, options, max_hidden, nested, blind, settled
                 # the same dynamics with one hidden state fewer (and as many parameters:
                 # the nested state's initial value became the substitution's constant)
                 verdicts = [v for v in verdicts if v is not lifted]
-            return rank(verdicts + [reduced])
+            return _ranked(verdicts + [reduced])[:2]
     return ordered, uncertain
+
+
+def _ranked(verdicts):
+    """``rank(verdicts)`` whose first verdict is fitted on every sample where it was
+    judged on the windows of a long recording (:func:`.verdict.on_whole`); one whose fit
+    there blows up or does not join is unscored (a scored one) or left out (an unscored
+    one), and the rest ranked again. Returns ``(ordered, uncertain, verdicts)``, the
+    last with the chosen verdict's whole fit in place of its windows'."""
+    verdicts = list(verdicts)
+    while True:
+        ordered, uncertain = rank(verdicts)
+        if not ordered or ordered[0].whole is None:
+            return ordered, uncertain, verdicts
+        first = ordered[0]
+        k = next(i for i, v in enumerate(verdicts) if v is first)
+        found = on_whole(first)
+        if not isinstance(found, str):
+            verdicts[k] = found
+        elif first.scored:
+            verdicts[k] = replace(first, cv=first.fit.residual_variance, cv_se=0.0,
+                                  history=(found,))
+        else:
+            del verdicts[k]
 
 
 def _noise_from_fit(trials, best):

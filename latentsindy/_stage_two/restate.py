@@ -24,6 +24,7 @@ from .._core.timing import timed
 from .context import Context
 from .fit.refine import Problem
 from .fit.shooting import BlowUp
+from .fit.windows import judged_part
 from .propose.nested import shifted_nested_system
 from .propose.proposal import close
 from .propose.smoother import HiddenFit, single_term
@@ -192,9 +193,11 @@ def restated(proposal, system, guesses, data, verdict, options,
     if candidates is None:
         candidates = np.zeros_like(system.free)
     try:
-        problem = Problem(system, *data, guesses, options)
+        whole = Problem(system, *data, guesses, options)
+        part = judged_part(whole)  # a long recording: judged on its windows (first_fit)
+        problem = whole if part is None else part
         trial = Trial(proposal, problem, problem.fit(system), candidates,
-                       verdict.initial_misfit)
+                      verdict.initial_misfit, None if part is None else whole)
     except BlowUp:
         return None
     return finish(trial)

@@ -52,8 +52,8 @@ class Verdict:
     # the same units in the same order for every verdict of one discovery
     # (:func:`.ranking.rank` pairs them)
     errors: np.ndarray | None = None
-    # an unscored verdict fitted on the windows of a long recording: its whole problem
-    # (:func:`on_whole` fits it there where it is chosen)
+    # a verdict judged on the windows of a long recording (``problem``): the recording's
+    # whole problem (:func:`on_whole` fits it there where it is chosen)
     whole: Problem | None = None
 
     @property
@@ -67,8 +67,10 @@ class Verdict:
 
     @property
     def size(self) -> int:
-        """Free coefficients plus hidden initial values, one set per recording."""
-        return self.system.n_parameters(len(self.problem.groups))
+        """Free coefficients plus hidden initial values, one set per recording (of the
+        whole data: the windows a long recording is judged on are not recordings)."""
+        data = self.problem if self.whole is None else self.whole
+        return self.system.n_parameters(len(data.groups))
 
 
 def closure_state_names(p: Proposal, observed, hidden) -> list[str]:
@@ -141,7 +143,7 @@ class Trial:
     candidates: np.ndarray
     initial_misfit: float
     # a long recording's whole problem, where ``problem`` is its windows
-    # (:func:`.fit.windows.judged_part`): only a contending system is fitted on it
+    # (:func:`.fit.windows.judged_part`): only the chosen system is fitted on it
     whole: Problem | None = None
 
 
@@ -156,9 +158,9 @@ def first_fit(p: Proposal, ctx: Context, options, best=np.inf, watch=None) -> Tr
     try:
         with stage("refinement"):
             whole = Problem(system, ctx.times, ctx.observed, guesses, options)
-            # a long recording: fitted on its windows, as its terms are selected and
-            # scored there; a contending system is fitted on every sample afterwards
-            # (on_every_sample), a rejected one never
+            # a long recording: fitted on its windows, where its terms are selected
+            # and its score taken; only the system chosen among all is fitted on every
+            # sample (.judge, on_whole)
             part = judged_part(whole)
             problem = whole if part is None else part
             initial = problem.equations(system, problem.initial_starts,
@@ -228,7 +230,7 @@ def finish(trial: Trial) -> Verdict:
     return finished(trial, selected_and_scored(trial))
 
 
-def selected_and_scored(trial: Trial, whole: bool = True):
+def selected_and_scored(trial: Trial):
     """What :func:`finish` computes, in a form that pickles (a helper process can
     compute it, :mod:`latentsindy._core.parallel`): (fit, history, score, standard
     error, held-out errors per held-out unit) after stepwise selection and the held-out
@@ -236,24 +238,16 @@ def selected_and_scored(trial: Trial, whole: bool = True):
     ("does not join", "blew up", "not judged": the discovery's ``max_time`` was spent
     before it started or while its folds were refitted).
 
-    On a long recording the terms are selected and the score is taken on windows of it
-    (:func:`.fit.windows.judged_part`): where the trial was first fitted on every sample
-    (a restatement), the windows' own fit of it is made first; the fit is then that of
-    the windows, and :func:`on_every_sample` (made here unless ``whole`` is False) fits
-    it on every sample."""
+    A long recording's trial is judged on the windows it was fitted on
+    (:func:`first_fit`); its system is fitted on every sample only where it is chosen
+    (:func:`on_whole`)."""
     if expired():
         return "not judged"
     # the pool includes the system's own terms, so a term swapped out can come back
     pool = trial.candidates | trial.fit.system.free
-    part = judged_part(trial.problem)
-    problem, start = (trial.problem if part is None else part), trial.fit
+    problem = trial.problem
     try:
-        if part is not None:  # the windows' own fit of the first fit's system, at the
-            # first fit's continuity weight
-            with stage("refinement"):
-                start = part.fit(start.system, start.starts[part.rows],
-                                 penalties=(start.rho,))
-        fit, history = select_terms(problem, start, pool)
+        fit, history = select_terms(problem, trial.fit, pool)
         if not problem.joins(fit):
             return "does not join"  # not a trajectory of the system
         cv, se, errors = cross_validate(problem, fit)
@@ -261,56 +255,7 @@ def selected_and_scored(trial: Trial, whole: bool = True):
         return "blew up"
     if expired():  # the folds' refits may have been cut short: not a held-out score
         return "not judged"
-    outcome = fit, tuple(history), cv, se, errors
-    return on_every_sample(trial, outcome) if whole else outcome
-
-
-def on_every_sample(trial: Trial, outcome):
-    """``outcome`` of :func:`selected_and_scored` with its fit on every sample of the
-    trial's recording, or why it has none ("blew up", "does not join", "not judged":
-    the discovery's ``max_time`` was spent before or during a refit). A trial first
-    fitted on the windows (``trial.whole``) has its selected system fitted on every
-    segment, from the windows' fitted starts and the guesses elsewhere; one first
-    fitted on every sample and selected on windows is refitted from the first fit's
-    starts (where selection made no move, the first fit is that fit)."""
-    if trial.whole is not None:
-        return _on_whole(trial, outcome)
-    if not _on_windows(trial, outcome):
-        return outcome
-    fit, history, cv, se, errors = outcome
-    if history and expired():
-        return "not judged"
-    try:
-        if history:
-            with stage("refinement"):
-                fit = trial.problem.fit(fit.system, trial.fit.starts)
-            if expired():  # the refit may have been cut short: not its system's fit
-                return "not judged"
-        else:
-            fit = trial.fit
-        if not trial.problem.joins(fit):
-            return "does not join"
-    except BlowUp:
-        return "blew up"
-    return fit, history, cv, se, errors
-
-
-def _on_whole(trial: Trial, outcome):
-    """:func:`on_every_sample` of a trial fitted on windows (``trial.whole`` set)."""
-    if isinstance(outcome, str):
-        return outcome
-    fit, history, cv, se, errors = outcome
-    if expired():
-        return "not judged"
-    try:
-        fit = whole_fit(trial.whole, trial.problem.rows, fit)
-        if expired():  # the fit may have been cut short: not its system's fit
-            return "not judged"
-        if not trial.whole.joins(fit):
-            return "does not join"
-    except BlowUp:
-        return "blew up"
-    return fit, history, cv, se, errors
+    return fit, tuple(history), cv, se, errors
 
 
 def whole_fit(whole: Problem, rows, fit: Fit) -> Fit:
@@ -323,30 +268,20 @@ def whole_fit(whole: Problem, rows, fit: Fit) -> Fit:
         return whole.fit(fit.system, starts)
 
 
-def on_whole(verdict: Verdict) -> Verdict | None:
-    """An unscored verdict fitted on the windows of a long recording (``whole`` set),
-    fitted on every sample (:func:`whole_fit`; its score stays the in-sample misfit),
-    for a result that has nothing better; None where it blows up there."""
+def on_whole(verdict: Verdict) -> Verdict | str:
+    """A verdict judged on the windows of a long recording (``whole`` set) with its
+    system fitted on every sample (:func:`whole_fit`), or why it has none ("blew up",
+    "does not join": a scored one's fit must join). A scored verdict keeps its held-out
+    score (taken on the windows); an unscored one's ``cv`` is the new fit's in-sample
+    misfit."""
     try:
         fit = whole_fit(verdict.whole, verdict.problem.rows, verdict.fit)
+        if verdict.scored and not verdict.whole.joins(fit):
+            return "does not join"
     except BlowUp:
-        return None
-    return replace(verdict, fit=fit, problem=verdict.whole, cv=fit.residual_variance,
-                   whole=None)
-
-
-def needs_every_sample(trial: Trial, outcome) -> bool:
-    """Whether :func:`on_every_sample` has a refit to make for ``outcome``."""
-    if trial.whole is not None:
-        return not isinstance(outcome, str)
-    return _on_windows(trial, outcome) and bool(outcome[1])
-
-
-def _on_windows(trial: Trial, outcome) -> bool:
-    """Whether ``outcome`` holds a fit made on windows of the trial's recording (its
-    starts: one per segment of the windows, fewer than the recording's)."""
-    return (not isinstance(outcome, str)
-            and len(outcome[0].starts) != trial.problem.n_segments)
+        return "blew up"
+    cv = verdict.cv if verdict.scored else fit.residual_variance
+    return replace(verdict, fit=fit, problem=verdict.whole, cv=cv, whole=None)
 
 
 def finished(trial: Trial, outcome) -> Verdict:
@@ -354,11 +289,8 @@ def finished(trial: Trial, outcome) -> Verdict:
     if isinstance(outcome, str):
         return unscored(trial, outcome)
     fit, history, cv, se, errors = outcome
-    whole = trial.whole
-    problem = (whole if whole is not None and len(fit.starts) == whole.n_segments
-               else trial.problem)
-    return Verdict(trial.proposal, fit, problem, cv, se, history, trial.initial_misfit,
-                   trial.candidates | trial.fit.system.free, errors)
+    return Verdict(trial.proposal, fit, trial.problem, cv, se, history, trial.initial_misfit,
+                   trial.candidates | trial.fit.system.free, errors, trial.whole)
 
 
 def unscored(trial: Trial, why: str) -> Verdict:

@@ -2,6 +2,7 @@
 segments of the recording, spread over it, and their residuals, sensitivities and noise
 model are the recording's own on those segments."""
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -190,82 +191,46 @@ def test_a_long_recording_judged_on_windows_finds_the_law_on_every_sample(monkey
             "alternatives') taken, on 4 windows of about") in " ".join(result.summary().split())
 
 
-def test_a_system_selected_on_windows_is_refitted_on_every_sample():
-    """``on_every_sample``: a system selected on the windows (here: the prey's law with
-    a term added, x) is refitted on every segment of the recording, as that system;
-    where selection made no move the first fit stands; outcomes that need no refit are
-    left as they are."""
-    from latentsindy._stage_two.verdict import needs_every_sample, on_every_sample
-
-    system, problem = _problem(20000, 500.0)
-    first = problem.fit(system, max_iterations=10)
-    trial = SimpleNamespace(problem=problem, fit=first, whole=None)
-    part = judged_part(problem)
-    free = system.free.copy()
-    free[0, 1] = True  # x in the prey's law
-    added = ParametricSystem(system.state_names, 1, system.features, system.coef, free)
-    selected = part.fit(added, first.starts[part.rows], max_iterations=10)
-    moved = (selected, (("add", (0, 1), 3.0),), 1.0, 0.1, np.ones(3))
-    assert needs_every_sample(trial, moved)
-    fit, *rest = on_every_sample(trial, moved)
-    assert len(fit.starts) == problem.n_segments and fit.n_data == problem.n_data
-    np.testing.assert_array_equal(fit.system.free, free)
-    assert rest[0] == moved[1] and fit.data_cost <= first.data_cost
-    still = (selected, (), 1.0, 0.1, np.ones(3))
-    assert not needs_every_sample(trial, still)
-    assert on_every_sample(trial, still)[0] is first
-    whole = (first, (("add", (0, 1), 3.0),), 1.0, 0.1, np.ones(3))
-    assert not needs_every_sample(trial, whole) and on_every_sample(trial, whole) is whole
-    assert on_every_sample(trial, "blew up") == "blew up"
-
-
-def test_a_system_fitted_on_windows_is_fitted_on_every_sample_only_where_it_contends(
-        monkeypatch):
+def test_only_the_chosen_system_is_fitted_on_every_sample(monkeypatch):
     """A hypothesis first fitted on the windows (``Trial.whole``: its recording's whole
-    problem) is fitted on every segment when it contends, moved by selection or not,
-    from its own starts on the windows and the guesses elsewhere; its verdict is then
-    the whole recording's. Rejected, it stays on the windows, and where no hypothesis
-    was scored the chosen one is fitted on every sample (``on_whole``; one that blows up
-    there is passed over)."""
+    problem) is judged there: its verdict is the windows' and keeps the whole problem
+    (its size counts one recording). Ranking fits the chosen one on every segment
+    (``on_whole``: its own starts on the windows, the guesses elsewhere; its held-out
+    score stays); where that fails it is unscored and the next is chosen."""
     from latentsindy._stage_two import judge
-    from latentsindy._stage_two.verdict import (
-        Trial,
-        finished,
-        needs_every_sample,
-        on_every_sample,
-        on_whole,
-        unscored,
-    )
+    from latentsindy._stage_two.verdict import Trial, finish, finished, on_whole, unscored
 
     system, problem = _problem(20000, 500.0)
     part = judged_part(problem)
     first = part.fit(system, max_iterations=10)
-    proposal = SimpleNamespace(structure=None)
+    proposal = SimpleNamespace(structure=SimpleNamespace(pivots=((0, 2),)), order=1,
+                               nested=(), stage_one=False)
     trial = Trial(proposal, part, first, np.zeros_like(system.free), 1.0, problem)
     still = (first, (), 1.0, 0.1, np.ones(3))
-    assert needs_every_sample(trial, still) and not needs_every_sample(trial, "blew up")
-    fit, *rest = on_every_sample(trial, still)
-    assert len(fit.starts) == problem.n_segments and fit.n_data == problem.n_data
-    assert rest == list(still[1:])
-    guessed = problem.equations(system.with_free(first.system.free_values()),
-                                problem.initial_starts, np.ones(problem.n_segments), 1.0,
-                                jacobian=False)
-    # the guesses are the truth here: the fit ends at the noise, below where it began
-    assert fit.data_cost <= guessed.data_cost
-    assert fit.residual_variance == pytest.approx(1.0, abs=0.1)
-    verdict = finished(trial, (fit, *rest))
-    assert verdict.problem is problem and verdict.whole is None
-    assert on_every_sample(trial, "does not join") == "does not join"
-    rejected = unscored(trial, "rejected")
-    assert rejected.problem is part and rejected.whole is problem
-    chosen = on_whole(rejected)
-    assert chosen.problem is problem and len(chosen.fit.starts) == problem.n_segments
-    assert chosen.cv == chosen.fit.residual_variance and chosen.whole is None
-    monkeypatch.setattr(judge, "_judged", lambda *a: ([rejected, rejected], ["u"]))
-    ordered, uncertain = judge.judge_all([], None)
-    assert ordered[0].problem is problem and ordered[1] is rejected and uncertain == ["u"]
-    monkeypatch.setattr(judge, "on_whole", lambda v: None)
-    assert judge.judge_all([], None) == ([], ["u"])
+    judged = finished(trial, still)
+    assert judged.problem is part and judged.whole is problem and judged.cv == 1.0
+    assert judged.size == system.n_parameters(1)  # the windows are one recording
+    chosen = on_whole(judged)
+    assert chosen.problem is problem and chosen.whole is None and chosen.cv == 1.0
+    assert len(chosen.fit.starts) == problem.n_segments and chosen.fit.n_data == problem.n_data
+    # the guesses are the truth here: the fit ends at the noise
+    assert chosen.fit.residual_variance == pytest.approx(1.0, abs=0.1)
+    rejected = on_whole(unscored(trial, "rejected"))
+    assert rejected.problem is problem and rejected.cv == rejected.fit.residual_variance
+
+    ordered, _, verdicts = judge._ranked([judged])
+    assert ordered[0].problem is problem and verdicts == [ordered[0]]
+    free = system.free.copy()
+    free[0, 1] = True  # another system, scoring worse, judged on every sample
+    other = ParametricSystem(system.state_names, 1, system.features, system.coef, free)
+    worse = replace(judged, fit=replace(chosen.fit, system=other), problem=problem,
+                    whole=None, cv=2.0)
+    monkeypatch.setattr(judge, "on_whole", lambda v: "does not join")
+    ordered, _, verdicts = judge._ranked([judged, worse])
+    assert ordered[0] is worse and ordered[1].history == ("does not join",)
+    assert judge._ranked([unscored(trial, "rejected")])[0] == []
+    judged = finish(trial)  # selected and scored on the windows, as it was fitted
+    assert judged.scored and judged.problem is part and judged.whole is problem
 
 
 def test_the_simulated_reference_of_a_windowed_score_is_taken_on_the_windows(monkeypatch):

@@ -6,12 +6,14 @@ these dominate a discovery and grow with its length (prey-only Lotka-Volterra at
 samples: 7.5 of 16.6 s on one core, against 1.3 of 4.1 s at 2,000). Beyond
 ``LONG`` samples they are made on ``WINDOWS`` stretches of whole segments spread
 evenly over the data, about ``JUDGED`` samples in all (:func:`judged_part`). So are the
-hypotheses' first fits, which decide which of them contend (:func:`.verdict.first_fit`);
-only a contending system, once selected and scored, is fitted on every sample
-(:func:`.verdict.on_every_sample`: from its starts on the windows and the guesses
-elsewhere), and a rejected one never (prey-only LV at 20,000 samples, draw 0, one
-process: the first fits on every sample took 2.5 of 11.2 s, and the windows' own
-refits of them before selection 0.6 s more; on the windows, 1.2 of 8.6 s).
+hypotheses' first fits, which decide which of them contend (:func:`.verdict.first_fit`).
+Only the system chosen among them all is fitted on every sample
+(:func:`.verdict.on_whole`: from its starts on the windows and the guesses elsewhere);
+one that does not join there is passed over (prey-only LV at 20,000 samples, draw 0,
+one process: the first fits on every sample took 2.5 of 11.2 s, and the windows' own
+refits of them before selection 0.6 s more; draw 1, with every contender fitted on
+every sample after selection, those fits 1.3 of 8.3 s). A restatement of the chosen
+system is fitted on every sample as it is judged (:func:`.verdict.on_every_sample`).
 ``JUDGED`` is twice the 2,000 samples on which
 every benchmark family is judged in full: evidence for a term grows with the samples,
 and by then it decides. Windows, rather than one stretch, so that every part of a
