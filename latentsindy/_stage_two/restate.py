@@ -24,14 +24,13 @@ from .._core.timing import timed
 from .context import Context
 from .fit.refine import Problem
 from .fit.shooting import BlowUp
-from .fit.windows import judged_part
 from .propose.nested import shifted_nested_system
 from .propose.proposal import close
 from .propose.smoother import HiddenFit, single_term
 from .rewrite.first_integral import integrated_proposal, integrated_system
 from .rewrite.gauge import shifted_guesses, shifted_proposal, shifted_system
 from .rewrite.observed_function import function_reduced_system, reduced_proposal, reduced_system
-from .verdict import Trial, Verdict, finish, first_fit
+from .verdict import Trial, Verdict, finish, first_fit, judged_on
 
 # A winner's hidden state is restated as the coefficient of another term only where that
 # term stays above this fraction of its RMS value on the winner's trajectories.
@@ -193,11 +192,9 @@ def restated(proposal, system, guesses, data, verdict, options,
     if candidates is None:
         candidates = np.zeros_like(system.free)
     try:
-        whole = Problem(system, *data, guesses, options)
-        part = judged_part(whole)  # a long recording: judged on its windows (first_fit)
-        problem = whole if part is None else part
+        problem, whole = judged_on(Problem(system, *data, guesses, options))
         trial = Trial(proposal, problem, problem.fit(system), candidates,
-                      verdict.initial_misfit, None if part is None else whole)
+                      verdict.initial_misfit, whole)
     except BlowUp:
         return None
     return finish(trial)

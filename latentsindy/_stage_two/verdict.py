@@ -157,20 +157,24 @@ def first_fit(p: Proposal, ctx: Context, options, best=np.inf, watch=None) -> Tr
                else HOPELESS * max(best, 1.0))
     try:
         with stage("refinement"):
-            whole = Problem(system, ctx.times, ctx.observed, guesses, options)
-            # a long recording: fitted on its windows, where its terms are selected
-            # and its score taken; only the system chosen among all is fitted on every
-            # sample (.judge, on_whole)
-            part = judged_part(whole)
-            problem = whole if part is None else part
+            problem, whole = judged_on(Problem(system, ctx.times, ctx.observed, guesses,
+                                               options))
             initial = problem.equations(system, problem.initial_starts,
                                         np.ones(problem.n_segments), 1.0, jacobian=False)
             fit = problem.fit(system, give_up=give_up, watch=watch)
     except BlowUp:
         return None  # the proposal's system cannot even be integrated from its guesses
     return Trial(p, problem, fit, candidates,
-                 float(np.sqrt(initial.data_cost / problem.n_data)),
-                 None if part is None else whole)
+                 float(np.sqrt(initial.data_cost / problem.n_data)), whole)
+
+
+def judged_on(problem: Problem):
+    """(what a trial on ``problem`` is fitted and judged on, the whole problem or None):
+    a long recording's windows (:func:`.fit.windows.judged_part`) and ``problem``,
+    where its terms are selected and its score taken; only the system chosen among all
+    is then fitted on every sample (:func:`on_whole`); else ``problem`` and None."""
+    part = judged_part(problem)
+    return (problem, None) if part is None else (part, problem)
 
 
 def first_fits(proposals, ctx: Context, options, trials=()) -> list[Trial]:

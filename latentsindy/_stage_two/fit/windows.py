@@ -13,7 +13,7 @@ one that does not join there is passed over (prey-only LV at 20,000 samples, dra
 one process: the first fits on every sample took 2.5 of 11.2 s, and the windows' own
 refits of them before selection 0.6 s more; draw 1, with every contender fitted on
 every sample after selection, those fits 1.3 of 8.3 s). A restatement of the chosen
-system is fitted on every sample as it is judged (:func:`.verdict.on_every_sample`).
+system is judged on the windows too, and fitted on every sample only where it is chosen.
 ``JUDGED`` is twice the 2,000 samples on which
 every benchmark family is judged in full: evidence for a term grows with the samples,
 and by then it decides. Windows, rather than one stretch, so that every part of a
