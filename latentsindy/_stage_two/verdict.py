@@ -21,7 +21,7 @@ from .._core.timing import stage
 from .context import Context
 from .fit.field import ParametricSystem
 from .fit.held_out import cross_validate
-from .fit.least_squares import GiveUpWatch
+from .fit.least_squares import HOPELESS, GiveUpWatch
 from .fit.refine import Fit, Problem
 from .fit.shooting import BlowUp
 from .fit.terms import select_terms
@@ -29,11 +29,10 @@ from .fit.windows import judged_part
 from .propose.nested import nested_system
 from .propose.proposal import Proposal
 
-# A first fit whose misfit after its first pass is this many times the best so far gets
-# no enforcing pass: rejection needs only twice the best, and the enforcing pass only
-# tightens continuity (on Lorenz such fits sat at 600-5000 times the best after 40
-# iterations and spent as many again there).
-HOPELESS = 50.0
+# A first fit whose misfit after its first pass is HOPELESS (least_squares.py) times the
+# best so far gets no enforcing pass: rejection needs only twice the best, and the
+# enforcing pass only tightens continuity (on Lorenz such fits sat at 600-5000 times
+# the best after 40 iterations and spent as many again there).
 
 
 @dataclass(frozen=True)

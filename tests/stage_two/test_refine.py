@@ -20,7 +20,7 @@ from latentsindy._stage_two.doubts.terms import missing_doubts, weak_doubts
 from latentsindy._stage_two.fit import terms as terms_module
 from latentsindy._stage_two.fit.field import FeatureMap, ParametricSystem
 from latentsindy._stage_two.fit.held_out import cross_validate
-from latentsindy._stage_two.fit.least_squares import GiveUpWatch
+from latentsindy._stage_two.fit.least_squares import HOPELESS, GiveUpWatch
 from latentsindy._stage_two.fit.normal_equations import DENSE, NormalEquations, as_array, solve
 from latentsindy._stage_two.fit.refine import JOIN, Fit, Problem
 from latentsindy._stage_two.fit.shooting import BlowUp
@@ -816,6 +816,36 @@ def test_weak_terms_fail_safe():
             terms_module._exact_refit = saved
     finally:
         terms_module.EVIDENCE = original
+
+
+def test_a_refit_that_cannot_count_gives_up():
+    """Dropping a term of the exact LV hidden law: no refit gets back to the fit's own
+    misfit. Asked to reach it, a refit still ``HOPELESS`` times above it gives up after
+    its first pass (``h``: 4 iterations, not 8) or at half its iterations (``x``: 20 of
+    40, where the full refit crawls to its limit): fewer iterations, the same verdict
+    (above the line either way). Against a line it never nears, the refit is the full
+    one, to the bit."""
+    data, guesses = lv_problem(0.01)
+    coef = np.zeros((2, 5))
+    coef[0, 0] = 1.0
+    coef[1] = TRUTH_ROW
+    free = np.zeros((2, 5), dtype=bool)
+    free[1, :4] = True
+    problem = Problem(ParametricSystem(("x", "h"), 1, LV_FEATURES, coef, free), [data.t],
+                      [data.x[:, :1]], guesses)
+    fit = problem.fit()
+    model = terms_module.Quadratic(problem, fit, np.zeros_like(free))
+    drops = {move[1]: keep for _, move, keep in model.moves(0.0, 1.0) if move[0] == "drop"}
+    for cell in [(1, 2), (1, 3)]:  # h, x
+        full = terms_module._exact_refit(problem, fit, model, drops[cell])
+        bounded = terms_module._exact_refit(problem, fit, model, drops[cell],
+                                            lambda _: fit.data_cost)
+        assert full.data_cost > fit.data_cost
+        assert bounded.iterations < full.iterations
+        assert bounded.data_cost > HOPELESS * fit.data_cost
+        never = terms_module._exact_refit(problem, fit, model, drops[cell], lambda _: 1e12)
+        assert never.data_cost == full.data_cost and never.iterations == full.iterations
+        assert np.array_equal(never.system.coef, full.system.coef)
 
 
 def test_weak_term_sentences_say_what_was_not_checked():

@@ -15,8 +15,7 @@ from latentsindy import discover_hidden, systems
 from latentsindy._core import parallel
 from latentsindy._core.threads import single_thread
 from latentsindy._stage_two import verdict
-from latentsindy._stage_two.fit.least_squares import GiveUpWatch
-from latentsindy._stage_two.verdict import HOPELESS
+from latentsindy._stage_two.fit.least_squares import HOPELESS, GiveUpWatch
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux" or len(os.sched_getaffinity(0)) < 2,
                                 reason="the helper needs Linux and two cores")
@@ -134,7 +133,7 @@ def test_term_selection_refits_the_rest_side_by_side_only_after_the_first_fails(
 
     log = tmp_path / "refits"
 
-    def scripted_refit(problem, fit, model, keep):
+    def scripted_refit(problem, fit, model, keep, line):
         with open(log, "a") as fh:
             fh.write(f"{os.getpid()}|{keep}\n")
         time.sleep(0.2)

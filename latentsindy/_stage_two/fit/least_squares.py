@@ -17,6 +17,16 @@ from .shooting import BlowUp
 # ambiguity 4) is forty times coarser. Not for held-out folds (cross_validate), whose
 # misfit does not contain the data that is scored.
 RESOLUTION = 0.05
+# A fit still this many times above the misfit it must reach to count (a hypothesis's
+# first fit: the best so far; a refit of term selection or of a check: the misfit at
+# which its move wins or its check turns) after half its iterations, or after a pass,
+# gives up there: it cannot compete, and running on costs as much again.
+HOPELESS = 50.0
+
+
+def degrees_of_freedom(n_data, system, starts) -> int:
+    """Data less the free coefficients and segment starts (at least 1)."""
+    return max(n_data - system.n_free - starts.size, 1)
 
 
 class GiveUpWatch:

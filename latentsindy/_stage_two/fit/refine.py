@@ -30,6 +30,7 @@ from ..context import NOISE_FLOOR
 from .batches import make_batches, run_groups
 from .field import ParametricSystem
 from .least_squares import RESOLUTION, GiveUpWatch, covariance, levenberg_marquardt
+from .least_squares import degrees_of_freedom as _dof
 from .normal_equations import NormalEquations, as_array
 from .shooting import Integrator, make_groups, stable_step
 from .whiten import carry_over, whiten
@@ -111,8 +112,7 @@ class Fit:
     def residual_variance(self) -> float:
         """Data misfit per degree of freedom, in noise variances (about 1 when the
         system is right and the noise level is estimated well)."""
-        n_params = self.system.n_free + self.starts.size
-        return self.data_cost / max(self.n_data - n_params, 1)
+        return self.data_cost / _dof(self.n_data, self.system, self.starts)
 
     def standard_errors(self) -> np.ndarray:
         """Standard errors of the free coefficients (covariance scaled by the residual
@@ -243,7 +243,7 @@ class Problem:
         max_iterations = max_iterations or self.options.max_iterations
         values = system.free_values()
         total = 0
-        dof = max(self.n_data - system.n_free - starts.size, 1)
+        dof = _dof(self.n_data, system, starts)
         bound = give_up if callable(give_up) else (lambda: give_up)
         watch = GiveUpWatch() if watch is None else watch
         watch.dof = dof
