@@ -29,11 +29,6 @@ from .fit.windows import judged_part
 from .propose.nested import nested_system
 from .propose.proposal import Proposal
 
-# A first fit whose misfit after its first pass is HOPELESS (least_squares.py) times the
-# best so far gets no enforcing pass: rejection needs only twice the best, and the
-# enforcing pass only tightens continuity (on Lorenz such fits sat at 600-5000 times
-# the best after 40 iterations and spent as many again there).
-
 
 @dataclass(frozen=True)
 class Verdict:
@@ -148,9 +143,12 @@ class Trial:
 
 def first_fit(p: Proposal, ctx: Context, options, best=np.inf, watch=None) -> Trial | None:
     """``p`` refined; ``best`` is the lowest misfit reached so far: a fit whose first
-    pass ends ``HOPELESS`` times above it gets no enforcing pass (it is rejected).
-    ``best`` may be a function that returns it (asked at every give-up check); ``watch``
-    (a :class:`.least_squares.GiveUpWatch`) records the checks."""
+    pass ends ``HOPELESS`` times above it gets no enforcing pass (it is rejected):
+    rejection needs only twice the best, and the enforcing pass only tightens continuity
+    (on Lorenz such fits sat at 600-5000 times the best after 40 iterations and spent
+    as many again there). ``best`` may be a function that returns it (asked at every
+    give-up check); ``watch`` (a :class:`.least_squares.GiveUpWatch`) records the
+    checks."""
     system, candidates, guesses = nested_system(p, ctx, build) if p.nested else build(p, ctx)
     give_up = ((lambda: HOPELESS * max(best(), 1.0)) if callable(best)
                else HOPELESS * max(best, 1.0))

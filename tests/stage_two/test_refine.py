@@ -774,10 +774,9 @@ def test_ambiguities_report_a_term_the_data_cannot_tell_from_another():
     assert ambiguities(problem, fit, candidates) == []
 
 
-def test_weak_terms_fail_safe():
-    """The exact LV hidden law: every term strongly supported (no weak term). A refit
-    that fails is not a pass: each term whose removal is predicted cheap enough to need
-    a refit comes back with change NaN; a refit that blows up says the term is needed."""
+def _exact_lv_fit():
+    """The LV problem at 1% noise with the exact hidden law's four terms free: the
+    problem, its fit and the free cells."""
     data, guesses = lv_problem(0.01)
     coef = np.zeros((2, 5))
     coef[0, 0] = 1.0
@@ -786,7 +785,14 @@ def test_weak_terms_fail_safe():
     free[1, :4] = True
     problem = Problem(ParametricSystem(("x", "h"), 1, LV_FEATURES, coef, free), [data.t],
                       [data.x[:, :1]], guesses)
-    fit = problem.fit()
+    return problem, problem.fit(), free
+
+
+def test_weak_terms_fail_safe():
+    """The exact LV hidden law: every term strongly supported (no weak term). A refit
+    that fails is not a pass: each term whose removal is predicted cheap enough to need
+    a refit comes back with change NaN; a refit that blows up says the term is needed."""
+    problem, fit, free = _exact_lv_fit()
     candidates = np.zeros_like(free)
     candidates[1, 4] = True
     assert weak_terms(problem, fit, candidates) == []
@@ -823,17 +829,10 @@ def test_a_refit_that_cannot_count_gives_up():
     misfit. Asked to reach it, a refit still ``HOPELESS`` times above it gives up after
     its first pass (``h``: 4 iterations, not 8) or at half its iterations (``x``: 20 of
     40, where the full refit crawls to its limit): fewer iterations, the same verdict
-    (above the line either way). Against a line it never nears, the refit is the full
-    one, to the bit."""
-    data, guesses = lv_problem(0.01)
-    coef = np.zeros((2, 5))
-    coef[0, 0] = 1.0
-    coef[1] = TRUTH_ROW
-    free = np.zeros((2, 5), dtype=bool)
-    free[1, :4] = True
-    problem = Problem(ParametricSystem(("x", "h"), 1, LV_FEATURES, coef, free), [data.t],
-                      [data.x[:, :1]], guesses)
-    fit = problem.fit()
+    (above the line either way). Against the full refit's own final misfit, a line it
+    never goes fifty times above, the refit is the full one, to the bit (a bound off in
+    scale, by the degrees of freedom say, would stop it)."""
+    problem, fit, free = _exact_lv_fit()
     model = terms_module.Quadratic(problem, fit, np.zeros_like(free))
     drops = {move[1]: keep for _, move, keep in model.moves(0.0, 1.0) if move[0] == "drop"}
     for cell in [(1, 2), (1, 3)]:  # h, x
@@ -843,7 +842,9 @@ def test_a_refit_that_cannot_count_gives_up():
         assert full.data_cost > fit.data_cost
         assert bounded.iterations < full.iterations
         assert bounded.data_cost > HOPELESS * fit.data_cost
-        never = terms_module._exact_refit(problem, fit, model, drops[cell], lambda _: 1e12)
+        final = full.data_cost
+        never = terms_module._exact_refit(problem, fit, model, drops[cell],
+                                          lambda _, final=final: final)
         assert never.data_cost == full.data_cost and never.iterations == full.iterations
         assert np.array_equal(never.system.coef, full.system.coef)
 

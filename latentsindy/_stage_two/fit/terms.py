@@ -108,8 +108,8 @@ def _first_better(problem, fit, model, moves, base, s2, price, tabu):
 def _refits(problem, fit, model, tried, line):
     """The exact refits of the moves ``tried`` (each giving up against ``line``, see
     :func:`_exact_refit`), in order, each made when it is asked for. The first is made
-    alone (it usually succeeds, and nothing more is asked); once
-    the second is asked for, the first failed, and where a second core is free
+    alone (it usually succeeds, and nothing more is asked); once the second is asked
+    for, the first failed, and where a second core is free
     (:func:`.._core.parallel.available`) the rest are made side by side: the same
     refits, so the same choice."""
     if not tried:
@@ -240,7 +240,8 @@ def _exact_refit(problem, fit, model, keep, line=None):
     exchange to be ambiguous): one still ``HOPELESS`` times above it after half its
     iterations, or after its first pass, gives up there, as a hypothesis's first fit
     does against the best (its verdict is the same unless the rest of the fit would
-    have cut its misfit fifty-fold). On Hindmarsh-Rose at 5%, draw 9, term selection's
+    have cut its misfit fifty-fold, or would have failed: a weak-term check then reads
+    the term as needed, not as unchecked). On Hindmarsh-Rose at 5%, draw 9, term selection's
     refits crawled to their iteration limit 50-120 times above the line, two passes
     each."""
     system = fit.system
