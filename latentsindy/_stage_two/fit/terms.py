@@ -241,9 +241,9 @@ def _exact_refit(problem, fit, model, keep, line=None):
     iterations, or after its first pass, gives up there, as a hypothesis's first fit
     does against the best (its verdict is the same unless the rest of the fit would
     have cut its misfit fifty-fold, or would have failed: a weak-term check then reads
-    the term as needed, not as unchecked). On Hindmarsh-Rose at 5%, draw 9, term selection's
-    refits crawled to their iteration limit 50-120 times above the line, two passes
-    each."""
+    the term as needed, not as unchecked). On Hindmarsh-Rose at 5%, draw 9, term
+    selection's refits crawled to their iteration limit 50-120 times above the line,
+    two passes each."""
     system = fit.system
     free = np.zeros_like(system.free)
     coef = system.coef.copy()
