@@ -22,7 +22,8 @@ A map inside an item of another (a hypothesis's held-out folds, its term selecti
 refits) runs as a loop while the other process of the outer map works; once that one
 has nothing left (the parent waits on the helper's last item, or the helper has
 finished its share while the parent's last item runs), the inner map forks a helper
-of its own, so the idle core takes inner items: two processes work at any time, and
+of its own, so the idle core takes inner items: one begun then forks at once, one
+already looping forks for the items it has left. Two processes work at any time, and
 maps nest at most two deep.
 Whatever goes wrong in the helper (an exception, a result that does not pickle, a
 crash, no answer in ``patience`` seconds) costs time only: the parent computes the
@@ -113,13 +114,14 @@ def forked_map(func, items, patience: float = 60.0, cost=None) -> list:
     value, are the same whatever the order.
     """
     items = list(items)
-    if not available(len(items)):
-        return [func(x) for x in items]
-    queue = list(range(len(items)))
     if cost is not None:
         cost = [float(c) for c in cost]
         if len(cost) != len(items):
             raise ValueError(f"forked_map: {len(cost)} costs for {len(items)} items.")
+    if not available(len(items)):
+        return _loop(func, items, patience, cost)
+    queue = list(range(len(items)))
+    if cost is not None:
         queue.sort(key=lambda k: -cost[k])  # stable: equal costs keep their order
     opened = []
     try:
@@ -141,6 +143,20 @@ def forked_map(func, items, patience: float = 60.0, cost=None) -> list:
         _helper(func, items, queue_r, result_r, result_w, flags)  # never returns
     os.close(result_w)
     return _share(func, items, queue, pid, queue_r, result_r, patience, flags)
+
+
+def _loop(func, items, patience, cost) -> list:
+    """``[func(x) for x in items]`` where no helper was to be had. Inside another map
+    (an inner map begun while that map's other process was busy), the items left are
+    shared as soon as that process has nothing left to do (:func:`available` is asked
+    again before each item), so that its core does not idle while this loop runs on."""
+    out = []
+    for k, x in enumerate(items):
+        if k and _depth and available(len(items) - k):
+            return out + forked_map(func, items[k:], patience,
+                                    None if cost is None else cost[k:])
+        out.append(func(x))
+    return out
 
 
 def shared_values(n: int) -> np.ndarray:

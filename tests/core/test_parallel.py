@@ -228,6 +228,32 @@ def test_an_inner_map_takes_the_idle_core(tmp_path, no_helper_left):
         assert pid in {p for _, p in inner} and len({p for _, p in inner}) == 2
 
 
+@needs_two_cores
+def test_a_looping_inner_map_shares_its_items_left_once_a_core_is_free(tmp_path,
+                                                                       no_helper_left):
+    def inner(y):
+        if y == 0:  # begun while the other process works; it finishes meanwhile
+            (tmp_path / "inner-began").touch()
+            assert _wait_for(parallel._partner_idle)
+        else:  # each of the items left waits until both processes have taken one
+            (tmp_path / f"inner-{y}-{os.getpid()}").touch()
+            _wait_for(lambda: len(list(tmp_path.glob("inner-*-*"))) >= 2)
+        return y * y, os.getpid()
+
+    def outer(x):
+        if x == 0:  # ends once the other item's inner map has begun, as a loop
+            assert _wait_for(lambda: (tmp_path / "inner-began").exists())
+            return "quick", os.getpid()
+        return forked_map(inner, range(4)), os.getpid()
+
+    quick, (found, pid) = forked_map(outer, range(2))
+    assert quick[1] != pid  # the two items ran in the two processes
+    assert [v for v, _ in found] == [0, 1, 4, 9]  # in order, the loop's values
+    assert found[0][1] == pid  # the first inner item in the loop
+    left = {p for _, p in found[1:]}
+    assert pid in left and len(left) == 2  # the items left: in two processes
+
+
 def _alive(pid):
     try:
         with open(f"/proc/{pid}/stat") as fh:

@@ -109,18 +109,20 @@ def _refits(problem, fit, model, tried, line):
     """The exact refits of the moves ``tried`` (each giving up against ``line``, see
     :func:`_exact_refit`), in order, each made when it is asked for. The first is made
     alone (it usually succeeds, and nothing more is asked); once the second is asked
-    for, the first failed, and where a second core is free
-    (:func:`.._core.parallel.available`) the rest are made side by side: the same
-    refits, so the same choice."""
+    for, the first failed, and from the first one asked for while a second core is free
+    (:func:`.._core.parallel.available`; inside another map one may come free on the
+    way) the rest are made side by side: the same refits, so the same choice."""
     if not tried:
         return
     yield _refit(problem, fit, model, tried[0][2], line)
     rest = tried[1:]
-    if torch.device(problem.options.device).type == "cpu" and available(len(rest)):
-        yield from forked_map(lambda m: _refit(problem, fit, model, m[2], line), rest)
-    else:
-        for m in rest:
-            yield _refit(problem, fit, model, m[2], line)
+    cpu = torch.device(problem.options.device).type == "cpu"
+    for k, move in enumerate(rest):
+        # asked before each refit: inside another map, a core may have come free since
+        if cpu and available(len(rest) - k):
+            yield from forked_map(lambda m: _refit(problem, fit, model, m[2], line), rest[k:])
+            return
+        yield _refit(problem, fit, model, move[2], line)
 
 
 def ambiguities(problem: Problem, fit: Fit, candidates, limit=MAX_ATTEMPTS, same=None):
