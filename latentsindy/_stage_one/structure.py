@@ -237,7 +237,15 @@ class StructureSearch:
         place (:meth:`earned`)."""
         if not self.free:
             starts = [(self.fixed_support, v) for _, v in starts]
-        found = [self.climb(self.admissible(s, v, False), False)[0] for s, v in starts]
+        found = []
+        for s, v in starts:
+            begin = time.perf_counter()
+            start = self.admissible(s, v, False)
+            # the start's own fit paces its first step where it took longer than the
+            # last step's fits (a start with many varying terms: its neighbours have
+            # as many, give or take one); a start found cached says nothing
+            self.pace[False] = max(self.pace.get(False, 0.0), time.perf_counter() - begin)
+            found.append(self.climb(start, False)[0])
         best = max(found, key=penalised)
         fit, near, other = self._adaptive_climbs(best, found)
         proposed = set(proposed)
@@ -287,12 +295,13 @@ def side_by_side(search: StructureSearch, step, adaptive, start):
     (:func:`.._core.parallel.forked_map`), with the same fits and the same cache as the
     loop gives; returns (fits, processes used).
 
-    A neighbour's fits are the loop's unless it asked for a structure that an earlier
-    neighbour fitted in the other process (the loop would have found it cached; here
-    it was fitted again from another start): each neighbour records the structures it
-    asked for and whether they were cached (``EquationModel.looked``), and the cache is
-    rebuilt in the loop's order, neighbour by neighbour. From the first neighbour whose
-    record differs from the loop's, the rest are fitted again in order, here.
+    A neighbour's fits are the loop's when every structure it asked for
+    (``EquationModel.looked``) was cached or not as in the loop, and each one cached
+    was the same fit: made before the step, or by the same earlier neighbour, whose own
+    fits were the loop's. Otherwise (it fitted a structure itself that an earlier
+    neighbour had fitted in the other process, from another start) it is fitted again,
+    here, in the loop's order; the cache is rebuilt in that order, neighbour by
+    neighbour.
     """
     with single_thread():  # torch and the BLAS on one thread, in both processes
         return _side_by_side(search, step, adaptive, start)
@@ -303,25 +312,35 @@ def _side_by_side(search, step, adaptive, start):
     if not available(len(step)):
         return [search.admissible(s, v, adaptive, start) for s, v in step], 1
     before = dict(model._cache)
+    made_by = dict.fromkeys(before, -1)  # in each process: which neighbour fitted what
 
-    def one(k):  # the fit, the structures asked for (and whether cached before), new fits
+    def one(k):  # the fit, the structures asked for (and who had fitted them), new fits
         model.looked, known = [], set(model._cache)
         try:
             fit = search.admissible(*step[k], adaptive, start)
-            return (_key(fit), [(key, key in known) for key in model.looked],
-                    {key: f for key, f in model._cache.items() if key not in known})
+            new = {key: f for key, f in model._cache.items() if key not in known}
+            looked = [(key, made_by[key] if key in known else None) for key in model.looked]
+            made_by.update(dict.fromkeys(new, k))
+            return _key(fit), looked, new
         finally:
             model.looked = None
 
     outcomes = forked_map(one, range(len(step)))
     cache, fits = before, []
     model._cache = cache  # the loop's cache, rebuilt in its order
+    maker = dict.fromkeys(before, -1)  # who fitted each structure in the loop's order
+    kept = {-1}  # neighbours whose own fits are the loop's
     for k, (key, looked, new) in enumerate(outcomes):
-        if any((asked in cache) != cached for asked, cached in looked):
-            fits += [search.admissible(s, v, adaptive, start) for s, v in step[k:]]
-            break
-        cache.update(new)
-        fits.append(cache[key])
+        if all(maker.get(asked) == by and by in kept if by is not None else asked not in cache
+               for asked, by in looked):
+            cache.update(new)
+            maker.update(dict.fromkeys(new, k))
+            kept.add(k)
+            fits.append(cache[key])
+            continue
+        known = set(cache)
+        fits.append(search.admissible(*step[k], adaptive, start))
+        maker.update(dict.fromkeys((key for key in cache if key not in known), k))
     return fits, 2
 
 

@@ -114,3 +114,35 @@ def test_a_neighbour_that_needed_an_earlier_ones_fit_is_fitted_again():
         assert list(search._cache) == list(loop._cache)
         assert [f.fitted_by for f in search._cache.values()] == [
             f.fitted_by for f in loop._cache.values()]
+
+
+def test_only_the_neighbours_whose_lookups_changed_are_fitted_again(tmp_path):
+    """The helper takes b, c and d while the parent's a runs; b fitted structure 2 that
+    a fits in the loop, so b is fitted again here, but c and d asked only for their own
+    structures: their fits are the loop's and are kept."""
+    chains = {name: [((j,), (), False) for j in chain] for name, chain in
+              {"a": [1, 2], "b": [3, 2], "c": [4], "d": [5]}.items()}
+    step = [(name, None) for name in chains]
+    calls = tmp_path / "calls"
+
+    class Logged(Scripted):
+        def admissible(self, name, *rest):
+            with open(calls, "a") as fh:
+                fh.write(f"{os.getpid()} {name}\n")
+            if name == "a":
+                time.sleep(0.5)  # the helper takes the others meanwhile
+            return super().admissible(name, *rest)
+
+    loop = Scripted(chains)
+    expected = [(f.support, f.fitted_by) for f in
+                [loop.admissible(n, None, False, None) for n, _ in step]]
+    search = Logged(chains)
+    fits, ran = side_by_side(search, step, False, None)
+    assert ran == 2
+    assert [(f.support, f.fitted_by) for f in fits] == expected
+    assert list(search._cache) == list(loop._cache)
+    assert [f.fitted_by for f in search._cache.values()] == [
+        f.fitted_by for f in loop._cache.values()]
+    here = [name for pid, name in (line.split() for line in calls.read_text().splitlines())
+            if int(pid) == os.getpid()]
+    assert here == ["a", "b"]  # a, its own; b again; c and d not again
