@@ -15,10 +15,15 @@ Usage::
     python benchmarks/speed.py --one-process         # no second process for stage two
     python benchmarks/speed.py --scaling --draws 3   # 2,000 samples against 20,000
     python benchmarks/speed.py --normal-equations    # dense against blocks, by size
+    python benchmarks/speed.py --families hindmarsh_rose --noise 0.05 --max-time 20
 
 ``--scaling`` times each draw twice: as drawn (2,000 samples) and over ten times its
 span at the same sampling density (20,000 samples), and prints the ratio of the two
 calls' times (the target: at most 3).
+
+``--max-time`` gives every call that budget (``discover_hidden(max_time=...)``) and
+prints how far past it each call returned (what is left to run once it is spent: the
+fit in flight, stage one's training) and whether the result carries the budget's doubt.
 
 ``--normal-equations`` times one point of the refinement's Levenberg-Marquardt fits
 (assembling J^T J and J^T r from one block of rows per segment and one per continuity
@@ -66,19 +71,21 @@ def pysindy_seconds(d, noise, seed=0):
     return time.perf_counter() - start
 
 
-def one(family, index, noise, span=1):
+def one(family, index, noise, span=1, max_time=None):
     d = draw(family, index, noise) if span == 1 else draw(
         family, index, noise, lambda t_end: np.linspace(0.0, span * t_end, 2000 * span))
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         result = discover_hidden(d.observed, ALL_FAMILIES[family].library(), t=d.t,
-                                 feature_names=list(d.observed_names), verbose=False)
+                                 feature_names=list(d.observed_names), verbose=False,
+                                 max_time=max_time)
     wall = time.perf_counter() - start
     fits = pysindy_seconds(d, noise)
     return {"family": family, "draw": index, "wall": wall, "pysindy": fits,
             "ratio": wall / fits, "timings": dict(result.timings),
-            "confident": result.confident, "samples": len(d.t)}
+            "confident": result.confident, "samples": len(d.t),
+            "budget": any(doubt.kind == "time budget" for doubt in result.doubts)}
 
 
 def median_split(rows):
@@ -164,15 +171,17 @@ def normal_equations(shapes=SHAPES, repeats=200, rows=20):
     return out
 
 
-def main(families, draws, noise, one_process=False):
+def main(families, draws, noise, one_process=False, max_time=None):
     parallel.enable(not one_process)
     rows = []
     for family in families:
         for index in range(draws):
-            row = one(family, index, noise)
+            row = one(family, index, noise, max_time=max_time)
             rows.append(row)
             print(f"{family:20s} draw {index}: {row['wall']:6.1f} s, {PYSINDY_FITS} pysindy "
                   f"fits {row['pysindy']:.3f} s, ratio {row['ratio']:.0f}", flush=True)
+    if max_time is not None:
+        return budgeted(families, rows, max_time)
     print(f"\n| family | calls | median wall (s) | worst (s) | median {PYSINDY_FITS} pysindy "
           "fits (s) | median ratio | median split (s) |\n|---|---|---|---|---|---|---|")
     for family in families:
@@ -181,6 +190,21 @@ def main(families, draws, noise, one_process=False):
         print(f"| {family} | {len(rs)} | {np.median([r['wall'] for r in rs]):.1f} | "
               f"{max(r['wall'] for r in rs):.1f} | {np.median([r['pysindy'] for r in rs]):.3f} | "
               f"{np.median([r['ratio'] for r in rs]):.0f} | {text} |")
+    return rows
+
+
+def budgeted(families, rows, max_time):
+    """The calls under ``max_time``: how far past it they returned, how many carry the
+    budget's doubt."""
+    print("\n| family | calls | budget (s) | median wall (s) | worst wall (s) | worst past "
+          "the budget (s) | with the budget's doubt | median split (s) |\n"
+          "|---|---|---|---|---|---|---|---|")
+    for family in families:
+        rs = [r for r in rows if r["family"] == family]
+        walls = [r["wall"] for r in rs]
+        print(f"| {family} | {len(rs)} | {max_time:g} | {np.median(walls):.1f} | "
+              f"{max(walls):.1f} | {max(walls) - max_time:.1f} | "
+              f"{sum(r['budget'] for r in rs)} of {len(rs)} | {median_split(rs)} |")
     return rows
 
 
@@ -194,6 +218,8 @@ if __name__ == "__main__":
                         help="no second process for stage two's independent pieces")
     parser.add_argument("--scaling", action="store_true",
                         help="each draw at 2,000 samples and over ten times its span")
+    parser.add_argument("--max-time", type=float, default=None,
+                        help="give every call this budget (seconds); report how far past it")
     parser.add_argument("--normal-equations", action="store_true",
                         help="the refinement's normal equations, dense against blocks")
     args = parser.parse_args()
@@ -203,4 +229,4 @@ if __name__ == "__main__":
         parallel.enable(not args.one_process)
         scaling(args.families, args.draws, args.noise)
     else:
-        main(args.families, args.draws, args.noise, args.one_process)
+        main(args.families, args.draws, args.noise, args.one_process, args.max_time)

@@ -18,9 +18,10 @@ from __future__ import annotations
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from .._core.budget import expired, passed
 from .._core.derivatives import choose_window
 from .._core.timing import timed
-from .structure import EquationChoice, StructureSearch, thresholded_constants
+from .structure import GAUSSIAN, EquationChoice, StructureSearch, thresholded_constants
 from .vcm import LevelGram, spline_basis
 from .vcm_fit import EquationFit, EquationModel
 
@@ -120,10 +121,15 @@ class VaryingCoefficients:
         return out
 
     def fit(self, i, support_row, varying_row) -> EquationFit:
-        """Posterior of one equation's structure (adaptive slope priors)."""
-        return self.models[i].fit(np.flatnonzero(support_row),
-                                  np.flatnonzero(np.asarray(varying_row) & support_row),
-                                  adaptive=True)
+        """Posterior of one equation's structure (adaptive slope priors; Gaussian ones
+        where the discovery's ``max_time`` has run out and the adaptive fit is not at
+        hand)."""
+        support = np.flatnonzero(support_row)
+        varying = np.flatnonzero(np.asarray(varying_row) & support_row)
+        adaptive = not expired() or self.models[i].fitted(support, varying, True)
+        if not adaptive:
+            passed(GAUSSIAN)
+        return self.models[i].fit(support, varying, adaptive=adaptive)
 
 
 __all__ = ["EquationChoice", "VaryingCoefficients", "resolution"]

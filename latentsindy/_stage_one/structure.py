@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._core.budget import spent
+from .._core.budget import expired, spent
 from .._core.parallel import available, forked_map
 from .._core.threads import single_thread
 from .vcm_fit import EquationFit, EquationModel
@@ -48,6 +48,9 @@ LOG_PRIOR_ODDS = np.log(20.0)  # price of one more term, or one more varying ter
 SIDE_BY_SIDE = 0.15
 # what the discovery's max_time leaves out when it runs out during the search
 _STOPPED = "stage one's structure search (stopped where it was)"
+# and where it has run out before the adaptive priors are fitted (one such fit of many
+# varying terms can take several seconds): the Gaussian priors' fits stand
+GAUSSIAN = "stage one's adaptive slope priors (Gaussian ones used)"
 
 
 @dataclass(frozen=True)
@@ -183,7 +186,10 @@ class StructureSearch:
             if seconds * len(step) >= SIDE_BY_SIDE:
                 near, ran = side_by_side(self, step, adaptive, fit)
             else:
-                near, ran = [self.admissible(s, v, adaptive, fit) for s, v in step], 1
+                near, ran = in_turn(self, step, adaptive, fit), 1
+            if near is None:  # max_time ran out during the step: it is not taken
+                spent(_STOPPED)
+                return fit, []
             seconds = (time.perf_counter() - begin) * ran / max(len(step), 1)
             self.pace[adaptive] = seconds
             best = max(near, key=penalised, default=None)
@@ -210,7 +216,10 @@ class StructureSearch:
         same as a single climb, fit for fit.
 
         Returns ``(fit, near, other)``: the higher end, its neighbours, and the other
-        end where the two climbs ended at different structures (else None)."""
+        end where the two climbs ended at different structures (else None). Where the
+        discovery's ``max_time`` has run out: ``best`` (no neighbours, no other)."""
+        if spent(GAUSSIAN):
+            return best, [], None
         begin = time.perf_counter()
         chosen = self.admissible(best.support, best.varying, True)
         self.pace[True] = time.perf_counter() - begin  # an adaptive climb's first pace
@@ -289,11 +298,26 @@ def thresholded_constants(gram, threshold, candidates):
     return set(active)
 
 
+def in_turn(search: StructureSearch, step, adaptive, start):
+    """``[search.admissible(s, v, adaptive, start) for s, v in step]``, one neighbour
+    after the other; None where the discovery's ``max_time`` runs out before the last
+    one (a step over many varying terms can take tens of seconds: the budget is asked
+    before each neighbour)."""
+    near = []
+    for s, v in step:
+        if expired():
+            return None
+        near.append(search.admissible(s, v, adaptive, start))
+    return near
+
+
 def side_by_side(search: StructureSearch, step, adaptive, start):
     """``[search.admissible(s, v, adaptive, start) for s, v in step]``, the neighbours
     of one climbing step fitted by two processes where a second core is to be had
     (:func:`.._core.parallel.forked_map`), with the same fits and the same cache as the
-    loop gives; returns (fits, processes used).
+    loop gives; returns (fits, processes used), or (None, processes used) where the
+    discovery's ``max_time`` runs out before every neighbour is fitted (the cache is then
+    as it was before the step).
 
     A neighbour's fits are the loop's when every structure it asked for
     (``EquationModel.looked``) was cached or not as in the loop, and each one cached
@@ -310,11 +334,13 @@ def side_by_side(search: StructureSearch, step, adaptive, start):
 def _side_by_side(search, step, adaptive, start):
     model = search.model
     if not available(len(step)):
-        return [search.admissible(s, v, adaptive, start) for s, v in step], 1
+        return in_turn(search, step, adaptive, start), 1
     before = dict(model._cache)
     made_by = dict.fromkeys(before, -1)  # in each process: which neighbour fitted what
 
     def one(k):  # the fit, the structures asked for (and who had fitted them), new fits
+        if expired():  # max_time: the step is not taken
+            return None
         model.looked, known = [], set(model._cache)
         try:
             fit = search.admissible(*step[k], adaptive, start)
@@ -326,7 +352,10 @@ def _side_by_side(search, step, adaptive, start):
             model.looked = None
 
     outcomes = forked_map(one, range(len(step)))
-    cache, fits = before, []
+    if any(outcome is None for outcome in outcomes):
+        model._cache = before
+        return None, 2
+    cache, fits = dict(before), []
     model._cache = cache  # the loop's cache, rebuilt in its order
     maker = dict.fromkeys(before, -1)  # who fitted each structure in the loop's order
     kept = {-1}  # neighbours whose own fits are the loop's
@@ -338,6 +367,9 @@ def _side_by_side(search, step, adaptive, start):
             kept.add(k)
             fits.append(cache[key])
             continue
+        if expired():
+            model._cache = before
+            return None, 2
         known = set(cache)
         fits.append(search.admissible(*step[k], adaptive, start))
         maker.update(dict.fromkeys((key for key in cache if key not in known), k))

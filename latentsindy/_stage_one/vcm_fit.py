@@ -273,6 +273,11 @@ class EquationModel:
             self._cache[key] = self._fit(*key, start or {})
         return self._cache[key]
 
+    def fitted(self, support, varying, adaptive=False) -> bool:
+        """Whether :meth:`fit` has this structure at hand (cached)."""
+        key = (tuple(sorted(int(j) for j in support)), tuple(sorted(int(k) for k in varying)))
+        return (*key, bool(adaptive) and bool(key[1])) in self._cache
+
     def _fit(self, support, varying, adaptive, start):
         constant = tuple(j for j in support if j not in varying)
         v, m_knots = len(varying), self.g.n_knots

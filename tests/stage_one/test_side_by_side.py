@@ -140,3 +140,26 @@ def test_only_the_neighbours_whose_lookups_changed_are_fitted_again(tmp_path):
     assert_as_the_loop(Logged(chains), chains, step)
     made = sorted(line.split()[1] for line in calls.read_text().splitlines())
     assert made == ["a", "b", "b", "c", "d"]  # b again, here; c and d not again
+
+
+def test_a_step_the_budget_runs_out_in_is_not_taken():
+    """max_time runs out while the neighbours are fitted (each takes 0.2 s, the budget
+    0.3 s): the neighbours not begun by then are not fitted, the step gives no fits and
+    the cache is as it was before it."""
+    from latentsindy._core import budget
+
+    chains = {name: [((j,), (), False)] for j, name in enumerate("abcde")}
+    step = [(name, None) for name in chains]
+
+    class Slow(Scripted):
+        def admissible(self, *args):
+            time.sleep(0.15)
+            return super().admissible(*args)
+
+    search = Slow(chains)
+    search._cache = {"before": Stamp(((9,), (), False), "start")}
+    with budget.budget(0.3) as spent:
+        fits, ran = side_by_side(search, step, False, None)
+    assert fits is None and ran == 2
+    assert list(search._cache) == ["before"]
+    assert spent.passed == []  # the climb records what was left out, not the step

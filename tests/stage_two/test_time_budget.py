@@ -37,7 +37,28 @@ def test_a_budget_spent_before_stage_two_gives_the_unchecked_best_candidate(prey
     left = result.doubts[1]
     assert "max_time=1e-06 s was spent" in left and "hypotheses not fitted" in left
     assert "Raise max_time" in left
+    assert "alternative proposals" in left and "adaptive slope priors" in left
     assert result.terms  # a system all the same
+
+
+def test_a_spent_budget_leaves_the_alternative_proposals_out(prey, monkeypatch):
+    """Stage one's own structure is always evaluated; the alternatives (other carriers,
+    constants moved, reduced gauges, shared states) only while time is left."""
+    from latentsindy._stage_two.propose import hypotheses
+
+    origins = []
+    evaluate = hypotheses.evaluate
+
+    def recorded(structure, ctx, origin, *args):
+        origins.append(origin)
+        return evaluate(structure, ctx, origin, *args)
+
+    monkeypatch.setattr(hypotheses, "evaluate", recorded)
+    _discover(prey, max_time=1e-6)
+    assert origins == ["stage one"]
+    origins.clear()
+    _discover(prey, refine=False)  # unbounded: the alternatives too
+    assert origins[0] == "stage one" and "carrier" in origins and len(origins) > 10
 
 
 def test_a_budget_spent_after_the_first_fit_keeps_that_fit(prey, monkeypatch):
@@ -66,14 +87,75 @@ def test_a_budget_spent_after_the_first_fit_keeps_that_fit(prey, monkeypatch):
 
 def test_stage_one_structure_search_stops_where_it_is():
     """A budget spent before stage one's structure search: it keeps the structure it
-    starts from and records that it stopped (the training itself always completes)."""
+    starts from, with the Gaussian priors' fit (the adaptive priors' is not made), and
+    records both (the training itself always completes)."""
     from latentsindy import DynamicSINDy
 
     data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=400, t_end=20.0, noise=0.01)
     with budget.budget(1e-9) as spent:
         DynamicSINDy(library=ps.PolynomialLibrary(degree=3), verbose=False).fit(
             data.x, data.t, feature_names=["x", "y"])
-    assert spent.passed == ["stage one's structure search (stopped where it was)"]
+    assert spent.passed == ["stage one's structure search (stopped where it was)",
+                            "stage one's adaptive slope priors (Gaussian ones used)"]
+
+
+def oscillator_model():
+    """The varying-coefficient model of xdot = a(t) y, ydot = -x (a = 1 + 0.5 sin 0.2 t),
+    library 1, x, y, x^2, y^2, and its search for dx/dt."""
+    from latentsindy._stage_one.evidence import VaryingCoefficients
+    from latentsindy._stage_one.structure import StructureSearch
+
+    t = np.linspace(0, 40, 1500)
+    a = 1.0 + 0.5 * np.sin(0.2 * t)
+    phase = np.cumsum(np.sqrt(a)) * (t[1] - t[0])
+    x = np.column_stack([np.sin(phase) * a ** 0.25, np.cos(phase) / a ** 0.25])
+    x += 0.01 * x.std(axis=0) * np.random.default_rng(0).standard_normal(x.shape)
+    theta = np.column_stack([np.ones(len(t)), x, x ** 2])
+    scale = np.sqrt(np.mean(np.gradient(x, t, axis=0) ** 2, axis=0))
+    vc = VaryingCoefficients([x], [t], [theta], scale, 0.01 * x.std(axis=0))
+    return vc, StructureSearch(vc.models[0], vc.basis, 0.05, True, {0, 1, 2}, set(range(5)))
+
+
+def test_a_climbing_step_the_budget_runs_out_in_is_not_taken(monkeypatch):
+    """The budget runs out after the step's second neighbour: the third is not fitted,
+    the climb ends where it stood, and the search records that it stopped."""
+    from latentsindy._stage_one import structure
+
+    monkeypatch.setattr(parallel, "_enabled", False)  # the neighbours in turn
+    vc, search = oscillator_model()
+    start = search.admissible({2}, {2}, False)
+    asked = []
+    fitted = search.admissible
+
+    def counted(*args):
+        asked.append(args[:2])
+        if len(asked) == 2:
+            budget._active.get().max_time = 0.0
+        return fitted(*args)
+
+    monkeypatch.setattr(search, "admissible", counted)
+    with budget.budget(1e6) as spent:
+        fit, near = search.climb(start, False)
+    assert fit is start and near == []
+    assert len(asked) == 2 < len(search.neighbours(start))
+    assert spent.passed == [structure._STOPPED]
+
+
+def test_a_spent_budget_gives_the_exact_model_gaussian_priors():
+    """With max_time spent, the posterior of a structure not yet fitted with adaptive
+    slope priors is its Gaussian priors' fit (recorded as left out); one fitted already
+    is used as it is."""
+    vc, _ = oscillator_model()
+    support, varying = np.array([False, False, True, False, False]), np.ones(5, bool)
+    with budget.budget(1e-9) as spent:
+        gaussian = vc.fit(0, support, varying)
+    assert not gaussian.adaptive and gaussian.varying == (2,)
+    assert spent.passed == ["stage one's adaptive slope priors (Gaussian ones used)"]
+    adaptive = vc.fit(0, support, varying)  # no budget: adaptive priors
+    assert adaptive.adaptive and adaptive.score != gaussian.score
+    with budget.budget(1e-9) as spent:
+        assert vc.fit(0, support, varying) is adaptive
+    assert spent.passed == []
 
 
 def test_an_ample_budget_changes_nothing(prey):

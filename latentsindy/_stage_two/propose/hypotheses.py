@@ -36,6 +36,7 @@ from dataclasses import replace
 import numpy as np
 import sympy as sp
 
+from ..._core.budget import spent
 from ..._core.timing import timed
 from ..context import Context
 from .proposal import Proposal, close, evaluate
@@ -44,6 +45,9 @@ from .smoother import Structure, fit_hidden, prune_constants, single_term
 MAX_RANK = 3  # at most this many hidden states from shared variation
 KEEP = 3  # proposals passed on to the judge besides the ones always judged
 IMPROVE = 0.8  # a constant-term move must cut the closure error by 20%
+# what the discovery's max_time leaves out when it runs out while proposals are made:
+# stage one's own structure is always evaluated, the alternatives as long as time is left
+CUT = "alternative proposals (other carriers, constants moved, shared hidden states)"
 
 
 @timed("proposals")
@@ -63,6 +67,9 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
         win by construction, so leave them out there.
     max_rank : int
         At most this many hidden states from shared variation.
+
+    Where the discovery's ``max_time`` runs out, the alternatives not yet evaluated are
+    left out (stage one's own structure at rank one always is evaluated).
     """
     n_obs, n_feat = support.shape
     proposals = {}
@@ -75,6 +82,8 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
     first = []  # always judged: stage one's own structure, and per equation the carrier
     # whose series fits the data best and the one whose series closes best
     for structure in _shared(support, varying_pairs, series, max_rank):
+        if first and spent(CUT):
+            break
         p = replace(evaluate(structure, ctx, "stage one"), stage_one=True)
         first.append(p) if not first else None
         add(p)
@@ -83,12 +92,16 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
 
     def in_reduced_gauge(p):
         key = (p.structure.key(), p.order)
+        if key not in reduced and spent(CUT):
+            return None
         if key not in reduced:
             reduced[key] = gauge_reduced(p, ctx)
         return reduced[key]
 
     equations = sorted({i for i, _ in varying_pairs})
     for i in equations:
+        if spent(CUT):
+            break
         k = next(k for j, k in varying_pairs if j == i)
         p = with_every_constant(ctx, support, i, k)
         if p is not None:
@@ -96,11 +109,15 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
             first.append(p)
     best_carrier, every_carrier = {}, {}
     for i in equations:
-        if not ctx.free_rows[i]:
+        if not ctx.free_rows[i] or spent(CUT):
             continue
         # the other equations keep stage one's terms as constants
-        carriers = [evaluate(single_term(n_obs, n_feat, i, k, support), ctx, "carrier")
-                    for k in range(n_feat)]
+        carriers = []
+        for k in range(n_feat):
+            if carriers and spent(CUT):
+                break
+            carriers.append(evaluate(single_term(n_obs, n_feat, i, k, support), ctx,
+                                     "carrier"))
         every_carrier[i] = carriers
         trials = _usable(carriers)
         fitting = min(trials, key=lambda p: p.fit.misfit)
@@ -126,12 +143,14 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
             first.append(q)
     if len(best_carrier) > 1:  # variation in several equations: one hidden or several
         for structure in _across_equations(best_carrier, support):
-            if structure.n_hidden > max_rank:
+            if structure.n_hidden > max_rank or spent(CUT):
                 continue
             p = evaluate(structure, ctx, "shared")
             add(p)
             add(improve_constants(p, ctx))
         for structure in _carrier_pairs(every_carrier, support):
+            if spent(CUT):
+                break
             add(evaluate(structure, ctx, "shared, a carrier pair"))
     chosen = []
     for p in first + _usable(list(proposals.values())):
@@ -168,16 +187,21 @@ def every_carrier(ctx: Context, support, fuller=True, others=None) -> list[Propo
     of 20 x 11 prey-only LV samples ``x^2`` ranked above the exact carrier ``x``, and
     its system could not be integrated), and (``fuller``) each with its fuller
     closure. ``others`` (like ``support``): the terms of the equations other than the
-    carrier's (default ``support``)."""
+    carrier's (default ``support``). Where the discovery's ``max_time`` runs out, the
+    carriers not yet evaluated are left out (at least one is)."""
     n_obs, n_feat = support.shape
     chosen = {}
     for i in range(n_obs):
-        if not ctx.free_rows[i]:
+        if not ctx.free_rows[i] or (chosen and spent(CUT)):
             continue
         rest = np.array(support if others is None else others, dtype=bool, copy=True)
         rest[i] = support[i]
-        carriers = _usable([evaluate(single_term(n_obs, n_feat, i, k, rest), ctx,
-                                     "carrier") for k in range(n_feat)])
+        carriers = []
+        for k in range(n_feat):
+            if (carriers or chosen) and spent(CUT):
+                break
+            carriers.append(evaluate(single_term(n_obs, n_feat, i, k, rest), ctx, "carrier"))
+        carriers = _usable(carriers)
         if not carriers:
             continue
         picks = [carriers[0], min(carriers, key=lambda q: q.fit.misfit)]
@@ -275,7 +299,8 @@ def _usable(proposals):
 
 def improve_constants(p: Proposal, ctx: Context, max_moves: int = 3) -> Proposal:
     """Add or drop one constant term at a time in the equations with hidden states while
-    that cuts the closure error by at least 20%."""
+    that cuts the closure error by at least 20% (until the discovery's ``max_time``
+    runs out: then ``p`` as improved so far)."""
     rows = sorted({i for i, _ in p.structure.pivots} | {
         int(i) for i in np.flatnonzero(p.structure.varying.any(axis=1))})
     rows = [i for i in rows if ctx.free_rows[i]]
@@ -285,6 +310,8 @@ def improve_constants(p: Proposal, ctx: Context, max_moves: int = 3) -> Proposal
             for j in range(p.structure.support.shape[1]):
                 if (i, j) in p.structure.pivots or p.structure.varying[i, j]:
                     continue
+                if spent(CUT):
+                    return p
                 sup = p.structure.support.copy()
                 sup[i, j] = not sup[i, j]
                 trial = evaluate(replace(p.structure, support=sup), ctx,
