@@ -6,10 +6,12 @@ judged, said in the result's doubt), :func:`spent` does both for a step about to
 start, and :func:`progress` prints which step is running
 and how many hypotheses remain (with ``verbose``). Outside a budget nothing expires
 and nothing is printed. Stage one's structure search checks the budget before every
-climbing step, stage two before every hypothesis, every term-selection step and every
+neighbour it fits (a climbing step the deadline passes in is not taken) and fits no
+adaptive priors once it is spent, the proposals before every alternative to stage one's
+own structure, stage two before every hypothesis, every term-selection step and every
 Levenberg-Marquardt iteration, so a call returns soon after its deadline with the best
-system found so far; stage one's training (a fixed number of steps, seconds on most
-data) always completes.
+system found so far: what runs on is the fit under way and stage one's training (a
+fixed number of steps, seconds on most data), which always completes.
 
 The deadline is a point on the monotonic clock, so a forked helper process
 (:mod:`.parallel`) reads the same one. What a helper records is lost with it, so
@@ -24,6 +26,8 @@ import sys
 import time
 from contextvars import ContextVar
 from dataclasses import dataclass, field
+
+from tqdm.auto import tqdm
 
 
 @dataclass
@@ -81,4 +85,5 @@ def progress(message) -> None:
     state = _active.get()
     if state is not None and state.verbose:
         text = message() if callable(message) else message
-        print(f"[latentsindy {state.elapsed():6.1f} s] {text}", file=sys.stderr, flush=True)
+        # above stage one's progress bar, where one is showing (tqdm redraws it below)
+        tqdm.write(f"[latentsindy {state.elapsed():6.1f} s] {text}", file=sys.stderr)

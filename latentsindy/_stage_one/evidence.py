@@ -112,7 +112,8 @@ class VaryingCoefficients:
                 out.append(None)
                 continue
             search = StructureSearch(model, self.basis, threshold, free, sup,
-                                     set(np.flatnonzero(allowed[i])))
+                                     set(np.flatnonzero(allowed[i])),
+                                     f"equation {i + 1} of {len(self.models)}")
             starts = [(sup, var), (sup, set())]
             if free:
                 starts.append((thresholded_constants(model.g, threshold,

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._core.budget import expired, spent
+from .._core.budget import expired, progress, spent
 from .._core.parallel import available, forked_map
 from .._core.threads import single_thread
 from .vcm_fit import EquationFit, EquationModel
@@ -46,6 +46,11 @@ LOG_PRIOR_ODDS = np.log(20.0)  # price of one more term, or one more varying ter
 # neighbours fitted by two processes (side_by_side): a fork and the fits' return cost a
 # few hundredths of a second.
 SIDE_BY_SIDE = 0.15
+# A climbing step expected to take this long (seconds) is announced in the progress lines
+# (a search over many varying terms takes minutes, its steps seconds each; most take
+# hundredths of a second, and say nothing)
+ANNOUNCE = 1.0
+_PRIORS = {False: "Gaussian", True: "adaptive"}
 # what the discovery's max_time leaves out when it runs out during the search
 _STOPPED = "stage one's structure search (stopped where it was)"
 # and where it has run out before the adaptive priors are fitted (one such fit of many
@@ -87,8 +92,10 @@ class StructureSearch:
         Terms that may vary.
     """
 
-    def __init__(self, model: EquationModel, basis, threshold, free, support, allowed):
+    def __init__(self, model: EquationModel, basis, threshold, free, support, allowed,
+                 label="the equation"):
         self.model, self.basis, self.threshold = model, basis, threshold
+        self.label = label  # what the progress lines call the equation
         self.pace = {}  # seconds per admissible fit lately, Gaussian (False) and adaptive
         self.free, self.fixed_support, self.allowed = free, set(support), set(allowed)
 
@@ -182,6 +189,10 @@ class StructureSearch:
             if spent(_STOPPED):
                 return fit, []
             step = self.neighbours(fit)
+            if seconds * len(step) >= ANNOUNCE:
+                progress(f"stage one's structure search, {self.label}: {len(step)} "
+                         f"neighbours to fit with {_PRIORS[adaptive]} priors, about "
+                         f"{seconds * len(step):.0f} s")
             begin = time.perf_counter()
             if seconds * len(step) >= SIDE_BY_SIDE:
                 near, ran = side_by_side(self, step, adaptive, fit)

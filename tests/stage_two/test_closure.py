@@ -20,11 +20,8 @@ from latentsindy._stage_two.propose.closure import (
     support_error,
     with_levels,
 )
-from latentsindy._stage_two.propose.hypotheses import (
-    _carrier_pairs,
-    fuller_closure,
-    gauge_free_support,
-)
+from latentsindy._stage_two.propose.hypotheses import fuller_closure, gauge_free_support
+from latentsindy._stage_two.propose.shared import carrier_pairs
 from latentsindy._stage_two.propose.smoother import (
     Structure,
     _sparse_solve,
@@ -435,7 +432,7 @@ def test_every_pair_of_carriers_of_two_equations_is_one_shared_hidden_state():
     every = {0: [carrier(0, 0, h), carrier(0, 1, np.cos(t))],
              1: [carrier(1, 0, 2 * h + 1), carrier(1, 1, h**2),
                  carrier(1, 2, h, score=np.nan)]}
-    pairs = _carrier_pairs(every, support)
+    pairs = carrier_pairs(every, support)
     assert len(pairs) == 4
     assert all(p.n_hidden == 1 and p.pivots[0][0] == 0 for p in pairs)
     (same,) = [p for p in pairs if p.pivots == ((0, 0),) and p.loadings[1, 0, 0] != 0]

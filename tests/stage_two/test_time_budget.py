@@ -141,6 +141,22 @@ def test_a_climbing_step_the_budget_runs_out_in_is_not_taken(monkeypatch):
     assert spent.passed == [structure._STOPPED]
 
 
+def test_a_slow_climbing_step_is_announced(monkeypatch, capsys):
+    """With verbose, a climbing step expected to take a second or more says how many
+    neighbours it fits and about how long; a quick one says nothing."""
+    monkeypatch.setattr(parallel, "_enabled", False)
+    _, search = oscillator_model()
+    start = search.admissible({2}, {2}, False)
+    with budget.budget(None, verbose=True):
+        search.climb(start, False)  # no pace yet: quiet
+        assert "structure search" not in capsys.readouterr().err
+        search.pace[False] = 1.0  # a second per neighbour, as on a spiking neuron
+        search.climb(start, False)
+    n = len(search.neighbours(start))
+    assert (f"] stage one's structure search, the equation: {n} neighbours to fit with "
+            f"Gaussian priors, about {n} s") in capsys.readouterr().err
+
+
 def test_a_spent_budget_gives_the_exact_model_gaussian_priors():
     """With max_time spent, the posterior of a structure not yet fitted with adaptive
     slope priors is its Gaussian priors' fit (recorded as left out); one fitted already
