@@ -23,7 +23,8 @@ calls' times (the target: at most 3).
 
 ``--max-time`` gives every call that budget (``discover_hidden(max_time=...)``) and
 prints how far past it each call returned (what is left to run once it is spent: the
-fit in flight, stage one's training) and whether the result carries the budget's doubt.
+fit in flight, stage one's training), whether the result carries the budget's doubt,
+and whether its structure is exact (scored as ``discovery.py`` scores it).
 
 ``--normal-equations`` times one point of the refinement's Levenberg-Marquardt fits
 (assembling J^T J and J^T r from one block of rows per segment and one per continuity
@@ -50,6 +51,7 @@ import pysindy as ps
 sys.path.insert(0, str(Path(__file__).parent))
 
 from _families import ALL_FAMILIES, draw  # noqa: E402
+from _scoring import score_structure  # noqa: E402
 
 from latentsindy import discover_hidden  # noqa: E402
 from latentsindy._core import parallel  # noqa: E402
@@ -85,7 +87,8 @@ def one(family, index, noise, span=1, max_time=None):
     return {"family": family, "draw": index, "wall": wall, "pysindy": fits,
             "ratio": wall / fits, "timings": dict(result.timings),
             "confident": result.confident, "samples": len(d.t),
-            "budget": any(doubt.kind == "time budget" for doubt in result.doubts)}
+            "budget": any(doubt.kind == "time budget" for doubt in result.doubts),
+            "exact": bool(score_structure(result, d)["exact"]) if max_time else None}
 
 
 def median_split(rows):
@@ -179,7 +182,9 @@ def main(families, draws, noise, one_process=False, max_time=None):
             row = one(family, index, noise, max_time=max_time)
             rows.append(row)
             print(f"{family:20s} draw {index}: {row['wall']:6.1f} s, {PYSINDY_FITS} pysindy "
-                  f"fits {row['pysindy']:.3f} s, ratio {row['ratio']:.0f}", flush=True)
+                  f"fits {row['pysindy']:.3f} s, ratio {row['ratio']:.0f}" + (
+                      "" if max_time is None else f", exact {row['exact']}, confident "
+                      f"{row['confident']}, budget's doubt {row['budget']}"), flush=True)
     if max_time is not None:
         return budgeted(families, rows, max_time)
     print(f"\n| family | calls | median wall (s) | worst (s) | median {PYSINDY_FITS} pysindy "
@@ -197,14 +202,15 @@ def budgeted(families, rows, max_time):
     """The calls under ``max_time``: how far past it they returned, how many carry the
     budget's doubt."""
     print("\n| family | calls | budget (s) | median wall (s) | worst wall (s) | worst past "
-          "the budget (s) | with the budget's doubt | median split (s) |\n"
-          "|---|---|---|---|---|---|---|---|")
+          "the budget (s) | with the budget's doubt | exact structure | median split (s) |\n"
+          "|---|---|---|---|---|---|---|---|---|")
     for family in families:
         rs = [r for r in rows if r["family"] == family]
         walls = [r["wall"] for r in rs]
         print(f"| {family} | {len(rs)} | {max_time:g} | {np.median(walls):.1f} | "
               f"{max(walls):.1f} | {max(walls) - max_time:.1f} | "
-              f"{sum(r['budget'] for r in rs)} of {len(rs)} | {median_split(rs)} |")
+              f"{sum(r['budget'] for r in rs)} of {len(rs)} | "
+              f"{sum(r['exact'] for r in rs)} of {len(rs)} | {median_split(rs)} |")
     return rows
 
 
