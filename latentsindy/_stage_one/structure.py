@@ -254,14 +254,11 @@ class StructureSearch:
     def run(self, starts, proposed=()) -> EquationChoice:
         """Search from every (support, varying) in ``starts``, Gaussian then adaptive;
         constants outside ``proposed`` (the generator's support) must then earn their
-        place (:meth:`earned`). Where the discovery's ``max_time`` runs out, from the
-        starts taken by then (the first always)."""
+        place (:meth:`earned`)."""
         if not self.free:
             starts = [(self.fixed_support, v) for _, v in starts]
         found = []
         for s, v in starts:
-            if found and spent(_STOPPED):  # max_time: the starts searched so far
-                break
             begin = time.perf_counter()
             start = self.admissible(s, v, False)
             # the start's own fit paces its first step where it took longer than the

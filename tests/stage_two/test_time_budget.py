@@ -141,27 +141,6 @@ def test_a_climbing_step_the_budget_runs_out_in_is_not_taken(monkeypatch):
     assert spent.passed == [structure._STOPPED]
 
 
-def test_a_spent_budget_searches_from_the_first_start_alone(monkeypatch):
-    """With the budget spent, the search fits its first start, takes no step, fits no
-    other start and no adaptive priors: the choice is that start's Gaussian fit."""
-    monkeypatch.setattr(parallel, "_enabled", False)
-    _, search = oscillator_model()
-    asked = []
-    fitted = search.admissible
-
-    def counted(*args):
-        asked.append(args[:3])
-        return fitted(*args)
-
-    monkeypatch.setattr(search, "admissible", counted)
-    with budget.budget(1e-9) as spent:
-        choice = search.run([({2}, {2}), ({0, 1, 2}, set()), ({1, 2}, set())])
-    assert asked == [({2}, {2}, False)]
-    assert (choice.fit.support, choice.fit.varying, choice.fit.adaptive) == ((2,), (2,), False)
-    assert choice.rivals == () and choice.apart == ()
-    assert len(spent.passed) == 2
-
-
 def test_a_slow_climbing_step_is_announced(monkeypatch, capsys):
     """With verbose, a climbing step expected to take a second or more says how many
     neighbours it fits and about how long; a quick one says nothing."""
