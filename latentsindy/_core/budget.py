@@ -9,9 +9,11 @@ and nothing is printed. Stage one's structure search checks the budget before ev
 neighbour it fits (a climbing step the deadline passes in is not taken) and fits no
 adaptive priors once it is spent, the proposals before every alternative to stage one's
 own structure, stage two before every hypothesis, every term-selection step and every
-Levenberg-Marquardt iteration, so a call returns soon after its deadline with the best
-system found so far: what runs on is the fit under way and stage one's training (a
-fixed number of steps, seconds on most data), which always completes.
+Levenberg-Marquardt iteration, so a call returns near its deadline with the best
+system found so far. Stage one's training (a fixed number of steps, seconds on most
+data) always completes; the structure search between its phases keeps the second
+phase's expected time in reserve, and starts a neighbour only where one at the last
+pace would end in time (:func:`reserving`).
 
 The deadline is a point on the monotonic clock, so a forked helper process
 (:mod:`.parallel`) reads the same one. What a helper records is lost with it, so
@@ -36,12 +38,13 @@ class Budget:
     verbose: bool
     start: float = field(default_factory=time.monotonic)
     passed: list[str] = field(default_factory=list)
+    reserve: float = 0.0  # seconds kept for work that runs whatever the budget
 
     def elapsed(self) -> float:
         return time.monotonic() - self.start
 
     def expired(self) -> bool:
-        return self.max_time is not None and self.elapsed() > self.max_time
+        return self.max_time is not None and self.elapsed() + self.reserve > self.max_time
 
 
 _active: ContextVar[Budget | None] = ContextVar("latentsindy_budget", default=None)
@@ -56,6 +59,24 @@ def budget(max_time: float | None, verbose: bool = False):
         yield state
     finally:
         _active.reset(token)
+
+
+@contextlib.contextmanager
+def reserving(seconds: float):
+    """Inside the block the active budget counts as spent ``seconds`` early: time kept
+    for what must still run after a step that checks it (stage one's second training
+    phase after its structure search; a neighbour's fit, at the pace of the last ones,
+    before the search starts it). Nothing outside a budget."""
+    state = _active.get()
+    if state is None:
+        yield
+        return
+    before = state.reserve
+    state.reserve = before + max(float(seconds), 0.0)
+    try:
+        yield
+    finally:
+        state.reserve = before
 
 
 def expired() -> bool:

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._core.budget import expired, progress, spent
+from .._core.budget import expired, progress, reserving, spent
 from .._core.parallel import available, forked_map
 from .._core.threads import single_thread
 from .vcm_fit import EquationFit, EquationModel
@@ -194,10 +194,11 @@ class StructureSearch:
                          f"neighbours to fit with {_PRIORS[adaptive]} priors, about "
                          f"{seconds * len(step):.0f} s")
             begin = time.perf_counter()
-            if seconds * len(step) >= SIDE_BY_SIDE:
-                near, ran = side_by_side(self, step, adaptive, fit)
-            else:
-                near, ran = in_turn(self, step, adaptive, fit), 1
+            with reserving(seconds):  # max_time: a neighbour starts if it can end in time
+                if seconds * len(step) >= SIDE_BY_SIDE:
+                    near, ran = side_by_side(self, step, adaptive, fit)
+                else:
+                    near, ran = in_turn(self, step, adaptive, fit), 1
             if near is None:  # max_time ran out during the step: it is not taken
                 spent(_STOPPED)
                 return fit, []

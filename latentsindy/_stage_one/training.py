@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from .._core.budget import reserving
 from .._core.threads import flush_denormals, single_thread
 from .._core.timing import timed
 from .decisions import between_phases
@@ -140,10 +142,15 @@ def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
     bar = tqdm(total=options.support_steps + options.refit_steps, disable=not verbose,
                desc="dynamic SINDy", leave=False)
     try:
+        begin = time.perf_counter()
         for phase, steps in ((1, options.support_steps), (2, options.refit_steps)):
             if phase == 2:
-                between_phases(model, theta, xdot, weights, inputs, options.threshold,
-                               free_rows, decide)
+                # max_time: the second phase runs whatever the budget; the decisions
+                # before it keep its time (at the first phase's pace) in reserve
+                pace = (time.perf_counter() - begin) / max(options.support_steps, 1)
+                with reserving(pace * steps):
+                    between_phases(model, theta, xdot, weights, inputs, options.threshold,
+                                   free_rows, decide)
                 opt.release()
                 opt = FlatAdam(params, lr=options.learning_rate / 3)
             history += _train_phase(model, opt, phase, steps, data, options, bar, verbose)
