@@ -93,6 +93,12 @@ def spent(step: str) -> bool:
     return False
 
 
+def left_out(step: str) -> bool:
+    """Whether ``step`` was recorded as left out (by this process)."""
+    state = _active.get()
+    return state is not None and step in state.passed
+
+
 def passed(what: str) -> None:
     """Record a step left out because the budget is spent (once per kind of step)."""
     state = _active.get()

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from .._core.budget import expired, passed
+from .._core.budget import expired, left_out, passed
 from .._core.derivatives import choose_window
 from .._core.timing import timed
 from .structure import GAUSSIAN, EquationChoice, StructureSearch, thresholded_constants
@@ -123,11 +123,12 @@ class VaryingCoefficients:
 
     def fit(self, i, support_row, varying_row) -> EquationFit:
         """Posterior of one equation's structure (adaptive slope priors; Gaussian ones
-        where the discovery's ``max_time`` has run out and the adaptive fit is not at
-        hand)."""
+        where the discovery's ``max_time`` has run out, or the structure search left
+        them out for it, and the adaptive fit is not at hand)."""
         support = np.flatnonzero(support_row)
         varying = np.flatnonzero(np.asarray(varying_row) & support_row)
-        adaptive = not expired() or self.models[i].fitted(support, varying, True)
+        adaptive = (not (expired() or left_out(GAUSSIAN))
+                    or self.models[i].fitted(support, varying, True))
         if not adaptive:
             passed(GAUSSIAN)
         return self.models[i].fit(support, varying, adaptive=adaptive)

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._core.budget import expired, progress, reserving, spent
+from .._core.budget import expired, passed, progress, reserving, spent
 from .._core.parallel import available, forked_map
 from .._core.threads import single_thread
 from .vcm_fit import EquationFit, EquationModel
@@ -153,6 +153,8 @@ class StructureSearch:
             for j in fit.constant:
                 if j in proposed:
                     continue
+                if spent(_STOPPED):
+                    return fit
                 alt = self.model.fit(set(fit.support) - {j}, fit.varying, fit.adaptive)
                 if np.isfinite(alt.score) and not _earns(fit, alt):
                     cheap.append(alt)
@@ -200,7 +202,7 @@ class StructureSearch:
                 else:
                     near, ran = in_turn(self, step, adaptive, fit), 1
             if near is None:  # max_time ran out during the step: it is not taken
-                spent(_STOPPED)
+                passed(_STOPPED)  # (the reserve may have stopped it: spent() says no)
                 return fit, []
             seconds = (time.perf_counter() - begin) * ran / max(len(step), 1)
             self.pace[adaptive] = seconds
@@ -243,8 +245,12 @@ class StructureSearch:
         if not others or spent(_STOPPED):
             return (*ends[0], None)
         cache = dict(self.model._cache)
-        rival = max((self.admissible(f.support, f.varying, True) for f in others),
-                    key=penalised)
+        fits = in_turn(self, [(f.support, f.varying) for f in others], True, None)
+        if fits is None:  # max_time ran out among them: no rival climb
+            passed(_STOPPED)
+            self.model._cache = cache
+            return (*ends[0], None)
+        rival = max(fits, key=penalised)
         if penalised(rival) <= penalised(chosen):
             self.model._cache = cache
             return (*ends[0], None)
@@ -272,8 +278,11 @@ class StructureSearch:
         proposed = set(proposed)
         reduced = self.earned(fit, proposed)
         if reduced is not fit:
-            fit, near = reduced, [] if spent(_STOPPED) else [
-                self.admissible(s, v, True, reduced) for s, v in self.neighbours(reduced)]
+            fit, near = reduced, [] if spent(_STOPPED) else in_turn(
+                self, self.neighbours(reduced), True, reduced)
+            if near is None:  # max_time ran out among them
+                passed(_STOPPED)
+                near = []
         rivals = tuple(f for f in near if self._is_rival(f, fit, proposed))
         # the other climb's end, unless it is the choice or among its rivals already
         apart = () if other is None or any(same_structure(other, f)
@@ -329,7 +338,7 @@ def side_by_side(search: StructureSearch, step, adaptive, start):
     (:func:`.._core.parallel.forked_map`), with the same fits and the same cache as the
     loop gives; returns (fits, processes used), or (None, processes used) where the
     discovery's ``max_time`` runs out before every neighbour is fitted (the cache is then
-    as it was before the step).
+    as it was before the step; :func:`in_turn` keeps the fits it made).
 
     A neighbour's fits are the loop's when every structure it asked for
     (``EquationModel.looked``) was cached or not as in the loop, and each one cached

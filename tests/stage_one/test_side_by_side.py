@@ -142,7 +142,7 @@ def test_only_the_neighbours_whose_lookups_changed_are_fitted_again(tmp_path):
     assert made == ["a", "b", "b", "c", "d"]  # b again, here; c and d not again
 
 
-def test_a_step_the_budget_runs_out_in_is_not_taken():
+def test_a_step_the_budget_runs_out_in_is_not_taken(tmp_path):
     """max_time runs out while the neighbours are fitted (each takes 0.2 s, the budget
     0.3 s): the neighbours not begun by then are not fitted, the step gives no fits and
     the cache is as it was before it."""
@@ -150,9 +150,12 @@ def test_a_step_the_budget_runs_out_in_is_not_taken():
 
     chains = {name: [((j,), (), False)] for j, name in enumerate("abcde")}
     step = [(name, None) for name in chains]
+    calls = tmp_path / "calls"
 
     class Slow(Scripted):
         def admissible(self, *args):
+            with open(calls, "a") as fh:
+                fh.write(f"{args[0]}\n")
             time.sleep(0.15)
             return super().admissible(*args)
 
@@ -161,5 +164,6 @@ def test_a_step_the_budget_runs_out_in_is_not_taken():
     with budget.budget(0.3) as spent:
         fits, ran = side_by_side(search, step, False, None)
     assert fits is None and ran == 2
+    assert len(calls.read_text().split()) < len(step)  # the last one not begun
     assert list(search._cache) == ["before"]
     assert spent.passed == []  # the climb records what was left out, not the step

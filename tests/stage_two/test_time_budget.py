@@ -47,18 +47,24 @@ def test_a_spent_budget_leaves_the_alternative_proposals_out(prey, monkeypatch):
     from latentsindy._stage_two.propose import hypotheses
 
     origins = []
-    evaluate = hypotheses.evaluate
+    evaluate, pruned = hypotheses.evaluate, hypotheses.pruned
 
     def recorded(structure, ctx, origin, *args):
         origins.append(origin)
         return evaluate(structure, ctx, origin, *args)
 
+    def recorded_pruned(structure, ctx, origin):
+        origins.append(origin)
+        return pruned(structure, ctx, origin)
+
     monkeypatch.setattr(hypotheses, "evaluate", recorded)
+    monkeypatch.setattr(hypotheses, "pruned", recorded_pruned)
     _discover(prey, max_time=1e-6)
     assert origins == ["stage one"]
     origins.clear()
     _discover(prey, refine=False)  # unbounded: the alternatives too
     assert origins[0] == "stage one" and "carrier" in origins and len(origins) > 10
+    assert "carrier with every term, pruned" in origins
 
 
 def test_a_budget_spent_after_the_first_fit_keeps_that_fit(prey, monkeypatch):
@@ -144,17 +150,43 @@ def test_a_climbing_step_the_budget_runs_out_in_is_not_taken(monkeypatch):
 def test_a_slow_climbing_step_is_announced(monkeypatch, capsys):
     """With verbose, a climbing step expected to take a second or more says how many
     neighbours it fits and about how long; a quick one says nothing."""
+    from latentsindy._stage_one import structure
+
     monkeypatch.setattr(parallel, "_enabled", False)
+    monkeypatch.setattr(structure, "ANNOUNCE", 5.0)  # quick steps here take milliseconds
     _, search = oscillator_model()
     start = search.admissible({2}, {2}, False)
     with budget.budget(None, verbose=True):
-        search.climb(start, False)  # no pace yet: quiet
+        search.climb(start, False)  # no pace yet, then the quick steps' own: quiet
         assert "structure search" not in capsys.readouterr().err
         search.pace[False] = 1.0  # a second per neighbour, as on a spiking neuron
         search.climb(start, False)
     n = len(search.neighbours(start))
+    assert n >= 5
     assert (f"] stage one's structure search, the equation: {n} neighbours to fit with "
             f"Gaussian priors, about {n} s") in capsys.readouterr().err
+
+
+def test_a_step_that_cannot_end_in_time_is_not_begun(monkeypatch):
+    """Before its deadline, a climbing step whose neighbours at the last pace would end
+    past it is not begun, and the search says it stopped; the adaptive priors left out
+    for the time kept in reserve stay out of the posterior fitted after it."""
+    from latentsindy._stage_one import structure
+
+    monkeypatch.setattr(parallel, "_enabled", False)
+    vc, search = oscillator_model()
+    start = search.admissible({2}, {2}, False)
+    search.pace[False] = 1e3  # a neighbour would take longer than the budget
+    with budget.budget(1e2) as spent:
+        assert search.climb(start, False) == (start, [])
+        assert spent.passed == [structure._STOPPED] and not spent.expired()
+        with budget.reserving(1e3):  # as stage one's second phase keeps its time
+            choice = search.run([({2}, {2})])
+        assert not spent.expired()
+        fit = vc.fit(0, np.array([False, False, True, False, False]), np.ones(5, bool))
+    assert not choice.fit.adaptive and not fit.adaptive
+    assert fit is vc.models[0].fit([2], [2])  # the Gaussian fit the search made
+    assert spent.passed == [structure._STOPPED, structure.GAUSSIAN]
 
 
 def test_a_spent_budget_gives_the_exact_model_gaussian_priors():
