@@ -11,9 +11,10 @@ adaptive priors once it is spent, the proposals before every alternative to stag
 own structure, stage two before every hypothesis, every term-selection step and every
 Levenberg-Marquardt iteration, so a call returns near its deadline with the best
 system found so far. Stage one's training (a fixed number of steps, seconds on most
-data) always completes; the structure search between its phases keeps the second
-phase's expected time in reserve, and starts a neighbour only where one at the last
-pace would end in time (:func:`reserving`).
+data), its starting structures and the posterior of the structure chosen always
+complete; the structure search between the training's phases keeps the second phase's
+expected time in reserve, and starts a neighbour only where one at the last pace would
+end in time (:func:`reserving`).
 
 The deadline is a point on the monotonic clock, so a forked helper process
 (:mod:`.parallel`) reads the same one. What a helper records is lost with it, so
