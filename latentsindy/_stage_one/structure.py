@@ -47,14 +47,12 @@ LOG_PRIOR_ODDS = np.log(20.0)  # price of one more term, or one more varying ter
 # few hundredths of a second.
 SIDE_BY_SIDE = 0.15
 # A climbing step expected to take this long (seconds) is announced in the progress lines
-# (a search over many varying terms takes minutes, its steps seconds each; most take
-# hundredths of a second, and say nothing)
+# (a search over many varying terms takes minutes; most steps take hundredths of a second)
 ANNOUNCE = 1.0
 _PRIORS = {False: "Gaussian", True: "adaptive"}
 # what the discovery's max_time leaves out when it runs out during the search
 _STOPPED = "stage one's structure search (stopped where it was)"
-# and where it has run out before the adaptive priors are fitted (one such fit of many
-# varying terms can take several seconds): the Gaussian priors' fits stand
+# and before the adaptive priors (a fit of many varying terms: seconds): Gaussian ones stand
 GAUSSIAN = "stage one's adaptive slope priors (Gaussian ones used)"
 
 

@@ -140,11 +140,10 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         is proposed, and stage two starts no further hypothesis, term-selection step or
         fit iteration: the best system found so far is returned, with the doubt
         ``"time budget"`` saying what was not judged (so never ``confident``). Stage
-        one's training (a fixed number of steps, seconds on most data, see
-        ``timings``), its starting structures and the posterior of the structure chosen
-        always complete, and so does the fit under way; the structure search keeps the
-        training's second phase in reserve. With ``verbose``, progress lines say which
-        step is running and how many hypotheses remain.
+        one's training (a fixed number of steps, seconds on most data, see ``timings``),
+        its starting structures, the chosen structure's posterior and the fit under way
+        always complete (the search keeps the training's second phase in reserve).
+        With ``verbose``, progress lines say which step runs and how many remain.
     device : str
         Torch device for stage one's training and the refinement's integrations
         ("cpu", default, or "cuda"). A GPU pays off for long series in stage one; the
