@@ -264,9 +264,7 @@ class EquationModel:
         """Fit a structure (cached): roughness by maximum evidence; with ``adaptive``
         also per-knot weights by variational Bayes. ``start``: {term: log roughness}
         to start from (a neighbouring structure's)."""
-        support = tuple(sorted(int(j) for j in support))
-        varying = tuple(sorted(int(k) for k in varying))
-        key = (support, varying, bool(adaptive) and bool(varying))
+        key = _structure_key(support, varying, adaptive)
         if self.looked is not None:
             self.looked.append(key)
         if key not in self._cache:
@@ -275,8 +273,7 @@ class EquationModel:
 
     def fitted(self, support, varying, adaptive=False) -> bool:
         """Whether :meth:`fit` has this structure at hand (cached)."""
-        key = (tuple(sorted(int(j) for j in support)), tuple(sorted(int(k) for k in varying)))
-        return (*key, bool(adaptive) and bool(key[1])) in self._cache
+        return _structure_key(support, varying, adaptive) in self._cache
 
     def _fit(self, support, varying, adaptive, start):
         constant = tuple(j for j in support if j not in varying)
@@ -342,3 +339,10 @@ class EquationModel:
                                        - 0.5 * rough[a] * expect * (mean_q - used) - kl))
             new.append(mean_q)
         return new, correction
+
+
+def _structure_key(support, varying, adaptive):
+    """:meth:`EquationModel.fit`'s cache key: sorted term indices, and adaptive priors
+    only where something varies."""
+    varying = tuple(sorted(int(k) for k in varying))
+    return tuple(sorted(int(j) for j in support)), varying, bool(adaptive) and bool(varying)

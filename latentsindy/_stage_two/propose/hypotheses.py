@@ -92,9 +92,9 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
 
     def in_reduced_gauge(p):
         key = (p.structure.key(), p.order)
-        if key not in reduced and spent(CUT):
-            return None
         if key not in reduced:
+            if spent(CUT):
+                return None
             reduced[key] = gauge_reduced(p, ctx)
         return reduced[key]
 
@@ -112,12 +112,7 @@ def propose(ctx: Context, support, varying_pairs, series, fuller=True, max_rank=
         if not ctx.free_rows[i] or spent(CUT):
             continue
         # the other equations keep stage one's terms as constants
-        carriers = []
-        for k in range(n_feat):
-            if carriers and spent(CUT):
-                break
-            carriers.append(evaluate(single_term(n_obs, n_feat, i, k, support), ctx,
-                                     "carrier"))
+        carriers = _carriers(ctx, support, i, support)
         every_carrier[i] = carriers
         trials = _usable(carriers)
         fitting = min(trials, key=lambda p: p.fit.misfit)
@@ -196,12 +191,7 @@ def every_carrier(ctx: Context, support, fuller=True, others=None) -> list[Propo
             continue
         rest = np.array(support if others is None else others, dtype=bool, copy=True)
         rest[i] = support[i]
-        carriers = []
-        for k in range(n_feat):
-            if (carriers or chosen) and spent(CUT):
-                break
-            carriers.append(evaluate(single_term(n_obs, n_feat, i, k, rest), ctx, "carrier"))
-        carriers = _usable(carriers)
+        carriers = _usable(_carriers(ctx, support, i, rest, needed=not chosen))
         if not carriers:
             continue
         picks = [carriers[0], min(carriers, key=lambda q: q.fit.misfit)]
@@ -212,6 +202,20 @@ def every_carrier(ctx: Context, support, fuller=True, others=None) -> list[Propo
     if fuller:
         out += [q for q in map(fuller_closure, out) if q is not None]
     return out
+
+
+def _carriers(ctx: Context, support, equation: int, rest, needed=True) -> list[Proposal]:
+    """Each library term as the one carrier of a hidden state in ``equation`` (the
+    other equations' terms as in ``rest``), in turn, until the discovery's ``max_time``
+    runs out (the first one regardless where ``needed``)."""
+    n_obs, n_feat = support.shape
+    carriers = []
+    for k in range(n_feat):
+        if (carriers or not needed) and spent(CUT):
+            break
+        carriers.append(evaluate(single_term(n_obs, n_feat, equation, k, rest), ctx,
+                                 "carrier"))
+    return carriers
 
 
 def with_every_constant(ctx: Context, support, equation: int, carrier: int) -> Proposal | None:
