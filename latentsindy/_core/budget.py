@@ -13,8 +13,9 @@ Levenberg-Marquardt iteration, so a call returns near its deadline with the best
 system found so far. Stage one's training (a fixed number of steps, seconds on most
 data), its starting structures and the posterior of the structure chosen always
 complete; the structure search between the training's phases keeps the second phase's
-expected time in reserve, and starts a neighbour only where one at the last pace would
-end in time (:func:`reserving`).
+expected time in reserve, starts a neighbour only where one at the last pace would end
+in time, and the adaptive priors only where their first fit (up to ``EM_STEPS``
+roughness searches, each at the Gaussian fits' pace) would (:func:`reserving`).
 
 The deadline is a point on the monotonic clock, so a forked helper process
 (:mod:`.parallel`) reads the same one. What a helper records is lost with it, so

@@ -39,15 +39,13 @@ import numpy as np
 from .._core.budget import expired, passed, progress, reserving, spent
 from .._core.parallel import available, forked_map
 from .._core.threads import single_thread
-from .vcm_fit import EquationFit, EquationModel
+from .vcm_fit import EM_STEPS, EquationFit, EquationModel
 
 LOG_PRIOR_ODDS = np.log(20.0)  # price of one more term, or one more varying term
 # A climbing step expected to take this long (seconds, at the last step's pace) has its
-# neighbours fitted by two processes (side_by_side): a fork and the fits' return cost a
-# few hundredths of a second.
+# neighbours fitted by two processes (side_by_side; a fork costs hundredths of a second)
 SIDE_BY_SIDE = 0.15
 # A climbing step expected to take this long (seconds) is announced in the progress lines
-# (a search over many varying terms takes minutes; most steps take hundredths of a second)
 ANNOUNCE = 1.0
 _PRIORS = {False: "Gaussian", True: "adaptive"}
 # what the discovery's max_time leaves out when it runs out during the search
@@ -138,21 +136,19 @@ class StructureSearch:
         is never smooth in time, and subtracting a state function from it smooths it
         a bit (prey-only Lotka-Volterra, 8000 samples: x^2 and x^3 added for a gain
         of 27 nats, the variation's effective degrees of freedom 223 -> 212). A
-        constant the generator did not propose stays only if removing it at least
-        doubles the variation's degrees of freedom (it restored a term the variation
-        had absorbed: x z behind rho(t) x, x y behind alpha(t) x) or raises the
-        misfit by 10% (the variation cannot carry it: -y behind rho(t) x)."""
+        constant the generator did not propose stays only if removing it at least doubles
+        the variation's degrees of freedom (it restored a term the variation had absorbed:
+        x z behind rho(t) x) or raises the misfit by 10% (-y behind rho(t) x)."""
         if not self.free or not fit.varying:
             return fit
         while True:
-            if spent(_STOPPED):
-                return fit
             cheap = []
             for j in fit.constant:
                 if j in proposed:
                     continue
-                if spent(_STOPPED):
-                    return fit
+                with reserving(self.pace.get(fit.adaptive, 0.0)):  # max_time: at the pace
+                    if spent(_STOPPED):
+                        return fit
                 alt = self.model.fit(set(fit.support) - {j}, fit.varying, fit.adaptive)
                 if np.isfinite(alt.score) and not _earns(fit, alt):
                     cheap.append(alt)
@@ -230,8 +226,10 @@ class StructureSearch:
         Returns ``(fit, near, other)``: the higher end, its neighbours, and the other
         end where the two climbs ended at different structures (else None). Where the
         discovery's ``max_time`` has run out: ``best`` (no neighbours, no other)."""
-        if spent(GAUSSIAN):
-            return best, [], None
+        # max_time: an adaptive fit runs to its end, EM_STEPS searches at the Gaussian pace
+        with reserving(EM_STEPS * self.pace.get(False, 0.0)):
+            if spent(GAUSSIAN):
+                return best, [], None
         begin = time.perf_counter()
         chosen = self.admissible(best.support, best.varying, True)
         self.pace[True] = time.perf_counter() - begin  # an adaptive climb's first pace
@@ -275,9 +273,11 @@ class StructureSearch:
         fit, near, other = self._adaptive_climbs(best, found)
         proposed = set(proposed)
         reduced = self.earned(fit, proposed)
-        if reduced is not fit:
-            fit, near = reduced, [] if spent(_STOPPED) else in_turn(
-                self, self.neighbours(reduced), True, reduced)
+        if reduced is not fit:  # its neighbours, with its priors (max_time: at their pace)
+            fit = reduced
+            with reserving(self.pace.get(fit.adaptive, 0.0)):
+                near = [] if spent(_STOPPED) else in_turn(
+                    self, self.neighbours(fit), fit.adaptive, fit)
             if near is None:  # max_time ran out among them
                 passed(_STOPPED)
                 near = []

@@ -189,6 +189,52 @@ def test_a_step_that_cannot_end_in_time_is_not_begun(monkeypatch):
     assert spent.passed == [structure._STOPPED, structure.GAUSSIAN]
 
 
+def test_adaptive_priors_that_cannot_end_in_time_are_not_begun(monkeypatch):
+    """The adaptive climb begins only where its first fit (up to EM_STEPS roughness
+    searches, each about a Gaussian fit at the last pace) would end before the deadline;
+    otherwise the Gaussian best stands, and the adaptive priors are recorded as left out."""
+    from latentsindy._stage_one import structure
+
+    monkeypatch.setattr(parallel, "_enabled", False)
+    _, search = oscillator_model()
+    best = search.admissible({2}, {2}, False)
+    search.pace[False] = 30.0  # the climb may go on (30 s a neighbour), the fit may not
+    with budget.budget(1e2) as spent:
+        assert search._adaptive_climbs(best, [best]) == (best, [], None)
+        assert spent.passed == [structure.GAUSSIAN] and not spent.expired()
+    search.pace[False] = 1.0  # 5 s: it begins
+    with budget.budget(1e2) as spent:
+        fit, _, _ = search._adaptive_climbs(best, [best])
+    assert fit.adaptive and spent.passed == []
+
+
+def test_a_reduced_structure_neighbours_keep_its_priors(monkeypatch):
+    """Where the budget left the adaptive priors out, the neighbours of a structure
+    reduced by ``earned`` are fitted with its Gaussian priors too, so that rivals are
+    scored on one footing (and fast)."""
+    from latentsindy._stage_one import structure
+
+    monkeypatch.setattr(parallel, "_enabled", False)
+    _, search = oscillator_model()
+    reduced = search.admissible({2}, set(), False)  # y constant: another structure
+    asked = []
+
+    def in_turn(s, step, adaptive, start):
+        asked.append(adaptive)
+        return structure.in_turn.__wrapped__(s, step, adaptive, start)
+
+    in_turn.__wrapped__ = structure.in_turn
+    monkeypatch.setattr(structure, "in_turn", in_turn)
+    monkeypatch.setattr(search, "climb", lambda fit, adaptive: (fit, []))
+    monkeypatch.setattr(search, "earned", lambda fit, proposed: reduced)
+    search.pace[False] = 30.0
+    with budget.budget(1e2) as spent:
+        choice = search.run([({2}, {2})])
+    assert asked == [False] and choice.fit is reduced
+    assert spent.passed == [structure.GAUSSIAN]
+    assert not any(f.adaptive for f in choice.rivals)
+
+
 def test_a_spent_budget_gives_the_exact_model_gaussian_priors():
     """With max_time spent, the posterior of a structure not yet fitted with adaptive
     slope priors is its Gaussian priors' fit (recorded as left out); one fitted already
