@@ -5,6 +5,23 @@ import torch
 torch.set_num_threads(2)
 
 
+def pytest_addoption(parser):
+    parser.addoption("--runslow", action="store_true", default=False,
+                     help="also run the tests marked slow (accuracy at default settings "
+                          "that trains for minutes: dynamic HyperSINDy's)")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked slow are skipped, with the reason, unless ``--runslow`` is given:
+    CI runs the suite without them (they take minutes each)."""
+    if config.getoption("--runslow"):
+        return
+    skip = pytest.mark.skip(reason="slow (minutes): run with --runslow")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)
+
+
 def r2(estimate, truth):
     """Coefficient of determination of ``estimate`` against ``truth``."""
     estimate, truth = np.asarray(estimate), np.asarray(truth)
