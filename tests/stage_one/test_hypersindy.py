@@ -180,23 +180,32 @@ def test_discover_hidden_with_hypersindy_on_lotka_volterra():
     """Issue 4 bar: the LV tutorial's accuracy with generator="hypersindy" (noise-free:
     hidden R^2 >= 0.999, hidden-equation coefficients within 1%; stage two now refines
     by integration, measured 0.99999 and 0.01%)."""
+    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000)
+    result = _prey_only_with_hypersindy(data)
+    assert result.compare_hidden(data.x_clean[:, 1]).r2[0] >= 0.999
+    errors, extra, missing = _hidden_law_errors(result)
+    assert extra == [] and missing == []
+    assert max(errors.values()) <= 0.01
+
+
+def _prey_only_with_hypersindy(data, **options):
+    """``discover_hidden`` on the prey of ``data`` (the LV tutorial's call), HyperSINDy."""
+    from latentsindy import discover_hidden
+
+    return discover_hidden(data.x[:, :1], ps.PolynomialLibrary(degree=3, include_bias=False),
+                           t=data.t, feature_names=["x"], hidden_names=["h"],
+                           generator="hypersindy", verbose=False, **options)
+
+
+def _hidden_law_errors(result):
+    """Relative error of each term of the tutorial's hidden law, extra and missing terms."""
     import sys
     from pathlib import Path
-
-    from latentsindy import discover_hidden
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "examples"))
     import lotka_volterra
 
-    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=2000)
-    result = discover_hidden(data.x[:, :1], ps.PolynomialLibrary(degree=3, include_bias=False),
-                             t=data.t, feature_names=["x"], hidden_names=["h"],
-                             generator="hypersindy", verbose=False)
-    assert result.compare_hidden(data.x_clean[:, 1]).r2[0] >= 0.999
-    errors, extra, missing = lotka_volterra.equation_errors(result.equation("h"),
-                                                            lotka_volterra.TRUE_HIDDEN)
-    assert extra == [] and missing == []
-    assert max(errors.values()) <= 0.01
+    return lotka_volterra.equation_errors(result.equation("h"), lotka_volterra.TRUE_HIDDEN)
 
 
 def test_discover_hidden_with_hypersindy_on_small_settings(monkeypatch):
@@ -204,25 +213,14 @@ def test_discover_hidden_with_hypersindy_on_small_settings(monkeypatch):
     pipeline in seconds; its accuracy at default settings is the slow test above):
     stage one's exact model still finds the law, and stage two closes it (measured:
     hidden-equation coefficients within 0.3%, hidden R^2 1.0000)."""
-    import sys
-    from pathlib import Path
-
-    from latentsindy import discover_hidden
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "examples"))
-    import lotka_volterra
-
     calls, window = [], HyperSINDy.window
     monkeypatch.setattr(HyperSINDy, "window",
                         lambda self, *a, **k: calls.append(1) or window(self, *a, **k))
     data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=600, t_end=30.0, noise=0.01)
     small = {"support_steps": 20, "refit_steps": 20, "min_epochs": 1, "window": 200}
-    result = discover_hidden(data.x[:, :1], ps.PolynomialLibrary(degree=3, include_bias=False),
-                             t=data.t, feature_names=["x"], hidden_names=["h"],
-                             generator="hypersindy", training=small, seed=0, verbose=False)
+    result = _prey_only_with_hypersindy(data, training=small, seed=0)
     assert calls and result.state_names == ("x", "h")  # trained by HyperSINDy
     assert result.compare_hidden(data.x_clean[:, 1]).r2[0] >= 0.99
-    errors, extra, missing = lotka_volterra.equation_errors(result.equation("h"),
-                                                            lotka_volterra.TRUE_HIDDEN)
+    errors, extra, missing = _hidden_law_errors(result)
     assert extra == [] and missing == []
     assert max(errors.values()) <= 0.02

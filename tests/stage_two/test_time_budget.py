@@ -217,13 +217,12 @@ def test_a_reduced_structure_neighbours_keep_its_priors(monkeypatch):
     monkeypatch.setattr(parallel, "_enabled", False)
     _, search = oscillator_model()
     reduced = search.admissible({2}, set(), False)  # y constant: another structure
-    asked = []
+    asked, fitted = [], structure.in_turn
 
     def in_turn(s, step, adaptive, start):
         asked.append(adaptive)
-        return structure.in_turn.__wrapped__(s, step, adaptive, start)
+        return fitted(s, step, adaptive, start)
 
-    in_turn.__wrapped__ = structure.in_turn
     monkeypatch.setattr(structure, "in_turn", in_turn)
     monkeypatch.setattr(search, "climb", lambda fit, adaptive: (fit, []))
     monkeypatch.setattr(search, "earned", lambda fit, proposed: reduced)
