@@ -15,7 +15,12 @@ data), its starting structures and the posterior of the structure chosen always
 complete; the structure search between the training's phases keeps the second phase's
 expected time in reserve, starts a neighbour only where one at the last pace would end
 in time, and the adaptive priors only where their first fit (up to ``EM_STEPS``
-roughness searches, each at the Gaussian fits' pace) would (:func:`reserving`).
+roughness searches, each at the Gaussian fits' pace) would (:func:`reserving`). From
+the second phase on, the call keeps as much time again to its end
+(:func:`keep_for_closing`) for what runs whatever the budget: the chosen structure's
+posterior, stage two's judgement of stage one's own structure, the step under way and
+the result (whose checks that refit the chosen system are left out once the budget is
+spent).
 
 The deadline is a point on the monotonic clock, so a forked helper process
 (:mod:`.parallel`) reads the same one. What a helper records is lost with it, so
@@ -41,12 +46,14 @@ class Budget:
     start: float = field(default_factory=time.monotonic)
     passed: list[str] = field(default_factory=list)
     reserve: float = 0.0  # seconds kept for work that runs whatever the budget
+    closing: float = 0.0  # seconds kept for making the result (:func:`keep_for_closing`)
 
     def elapsed(self) -> float:
         return time.monotonic() - self.start
 
     def expired(self) -> bool:
-        return self.max_time is not None and self.elapsed() + self.reserve > self.max_time
+        return (self.max_time is not None
+                and self.elapsed() + self.reserve + self.closing > self.max_time)
 
 
 _active: ContextVar[Budget | None] = ContextVar("latentsindy_budget", default=None)
@@ -79,6 +86,16 @@ def reserving(seconds: float):
         yield
     finally:
         state.reserve = before
+
+
+def keep_for_closing(seconds: float) -> None:
+    """From now on the active budget counts as spent ``seconds`` early: time kept, to
+    the end of the call, for what runs after the last step that checks it (the result
+    and its checks, the step under way when the time ran out). Nothing outside a
+    budget."""
+    state = _active.get()
+    if state is not None:
+        state.closing = max(float(seconds), 0.0)
 
 
 def expired() -> bool:

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import sympy as sp
 
+from .._core.budget import spent
 from .._core.doubt import Doubt
 from .._core.parallel import map_on
 from .._core.timing import timed
@@ -131,6 +132,11 @@ def _describe_origin(p):
     return f"{p.origin} ({p.n_states} hidden)"
 
 
+# what the discovery's max_time leaves out when it is spent before the result is made
+CHECKS = ("the checks that refit the chosen system (its simulated reference, terms beyond "
+          "the search, exchangeable, weakly supported and nearly needed terms)")
+
+
 @timed("checks and result")
 def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
     """The result of a refined discovery: ``ordered`` verdicts, best first.
@@ -171,8 +177,10 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
     # a fit whose segments do not meet is no trajectory of its system: refitting it with
     # other terms, or on data simulated from it, would measure its tearing (the
     # ``not continuous`` doubt says so; Hindmarsh-Rose at 1%: 20-40 s of such refits)
+    # max_time spent: the checks are left out (and said to be), not run on refits cut
+    # short after their first iteration, whose verdicts would not mean what they say
     expected, (extended, beyond), folded, exchangeable, weak, missing = (
-        _refitting_checks(best, ctx, simulate) if fit.continuous
+        _refitting_checks(best, ctx, simulate) if fit.continuous and not spent(CHECKS)
         else (None, (None, []), None, [], [], []))
     if expected is not None:
         notes.append(f"a right system's held-out score at this sampling: {expected:.3g} "

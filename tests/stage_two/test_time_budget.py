@@ -70,7 +70,7 @@ def test_a_spent_budget_leaves_the_alternative_proposals_out(prey, monkeypatch):
 def test_a_budget_spent_after_the_first_fit_keeps_that_fit(prey, monkeypatch):
     """The deadline passes once the first hypothesis is fitted: the others are not
     started, nothing is scored, and the result is that refined system, flagged."""
-    from latentsindy._stage_two import verdict
+    from latentsindy._stage_two import assemble, verdict
 
     monkeypatch.setattr(parallel, "_enabled", False)  # one process: one clock to stop
     fitted = verdict.first_fit
@@ -81,12 +81,17 @@ def test_a_budget_spent_after_the_first_fit_keeps_that_fit(prey, monkeypatch):
         return out
 
     monkeypatch.setattr(verdict, "first_fit", then_spent)
+    checked, checks = [], assemble._refitting_checks
+    monkeypatch.setattr(assemble, "_refitting_checks",
+                        lambda *args: checked.append(1) or checks(*args))
     result = _discover(prey, max_time=1e6)
     assert result.refinement is not None and not result.confident
     kinds = [d.kind for d in result.doubts]
     assert "time budget" in kinds and "not scored" in kinds
     left = result.doubts[kinds.index("time budget")]
     assert "hypotheses not fitted" in left and "contending hypotheses not scored" in left
+    # the checks that refit the chosen system are left out, not run on refits cut short
+    assert assemble.CHECKS in left and checked == []
     assert "max_time was spent first" in result.doubts[kinds.index("not scored")]
     assert not np.isfinite(result.score)
 
@@ -103,6 +108,48 @@ def test_stage_one_structure_search_stops_where_it_is():
             data.x, data.t, feature_names=["x", "y"])
     assert spent.passed == ["stage one's structure search (stopped where it was)",
                             "stage one's adaptive slope priors (Gaussian ones used)"]
+
+
+def test_the_time_kept_for_closing_counts_to_the_end():
+    """Time kept for what runs after the last check (the result) makes the budget count
+    as spent that much early, to the end of the call; outside a budget nothing."""
+    with budget.budget(10.0) as state:
+        budget.keep_for_closing(1.0)
+        assert not budget.expired() and state.closing == 1.0
+        budget.keep_for_closing(11.0)
+        assert budget.expired() and budget.spent("a step")
+        assert state.passed == ["a step"]
+    budget.keep_for_closing(11.0)
+    assert not budget.expired()
+
+
+def test_stage_one_keeps_its_second_phase_time_for_closing():
+    """Stage one's training keeps the second phase's expected time (at the first
+    phase's pace) to the end of the call, for what runs whatever the budget after it:
+    the structure search between the phases keeps twice that, and stage two stops that
+    much before the deadline."""
+    from latentsindy import DynamicSINDy
+    from latentsindy._stage_one import training
+
+    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=400, t_end=20.0, noise=0.01)
+    kept = []
+    decide = training.between_phases
+
+    def recorded(*args):
+        state = budget._active.get()
+        kept.append((state.reserve, state.closing))
+        return decide(*args)
+
+    with pytest.MonkeyPatch.context() as mp, budget.budget(1e6) as state:
+        mp.setattr(training, "between_phases", recorded)
+        DynamicSINDy(library=ps.PolynomialLibrary(degree=3), verbose=False,
+                     training={"support_steps": 40, "refit_steps": 80}).fit(
+            data.x, data.t, feature_names=["x", "y"])
+        assert not budget.expired() and 0 < state.closing < state.elapsed()
+        assert state.reserve == 0.0  # the phase's own reserve ends with it
+        state.max_time = state.elapsed() + 0.5 * state.closing
+        assert budget.expired()
+    assert kept == [(state.closing, state.closing)]
 
 
 def oscillator_model():
