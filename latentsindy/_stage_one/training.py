@@ -149,8 +149,8 @@ def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
                 # before it keep its time (at the first phase's pace) in reserve, and
                 # the call keeps as much again to its end for what follows whatever the
                 # budget (the chosen structure's posterior, stage two's judgement of
-                # stage one's own structure, the result; on Hindmarsh-Rose 0.5-1.2 s
-                # where the phase takes 1.7 s)
+                # stage one's own structure, the result; on Hindmarsh-Rose what ran
+                # past the deadline before took 0.4-1.0 s, where the phase takes 1.7 s)
                 pace = (time.perf_counter() - begin) / max(options.support_steps, 1)
                 keep_for_closing(pace * steps)
                 with reserving(pace * steps):
