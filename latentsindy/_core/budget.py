@@ -16,21 +16,25 @@ complete; the structure search between the training's phases keeps the second ph
 expected time in reserve, starts a neighbour only where one at the last pace would end
 in time, and the adaptive priors only where their first fit (up to ``EM_STEPS``
 roughness searches, each at the Gaussian fits' pace) would (:func:`reserving`). From
-the second phase on, the call keeps as much time again to its end
+timeVAE's second phase on, the call keeps as much time again to its end
 (:func:`keep_for_closing`) for what runs whatever the budget: the chosen structure's
 posterior, stage two's judgement of stage one's own structure, the step under way and
 the result (whose checks that refit the chosen system are left out once the budget is
 spent).
 
 The deadline is a point on the monotonic clock, so a forked helper process
-(:mod:`.parallel`) reads the same one. What a helper records is lost with it, so
-``discover_hidden`` flags a result whenever the deadline passed during the call, with
-what this process recorded.
+(:mod:`.parallel`) reads the same one. What a helper records is lost with it, but that
+it recorded a step is not: a byte of memory shared across the fork says so
+(:meth:`Budget.cut_elsewhere`). ``discover_hidden`` flags a result where a step was left
+out in any process, or where the call ran past its deadline, with what this process
+recorded.
 """
 
 from __future__ import annotations
 
 import contextlib
+import mmap
+import os
 import sys
 import time
 from contextvars import ContextVar
@@ -47,9 +51,24 @@ class Budget:
     passed: list[str] = field(default_factory=list)
     reserve: float = 0.0  # seconds kept for work that runs whatever the budget
     closing: float = 0.0  # seconds kept for making the result (:func:`keep_for_closing`)
+    owner: int = field(default_factory=os.getpid)
+    # one byte shared with forked helpers: set where a helper left a step out
+    shared: mmap.mmap | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        if self.max_time is not None and self.shared is None:
+            self.shared = mmap.mmap(-1, 1)  # anonymous, so shared across fork
 
     def elapsed(self) -> float:
         return time.monotonic() - self.start
+
+    def cut_elsewhere(self) -> bool:
+        """Whether a forked helper process left a step out (what, it could not say)."""
+        return self.shared is not None and self.shared[0] == 1
+
+    def overran(self) -> bool:
+        """Whether the deadline itself has passed (the time kept in reserve aside)."""
+        return self.max_time is not None and self.elapsed() > self.max_time
 
     def expired(self) -> bool:
         return (self.max_time is not None
@@ -94,8 +113,8 @@ def keep_for_closing(seconds: float) -> None:
     and its checks, the step under way when the time ran out). Nothing outside a
     budget."""
     state = _active.get()
-    if state is not None:
-        state.closing = max(float(seconds), 0.0)
+    if state is not None:  # the most any training of the call asked for
+        state.closing = max(state.closing, float(seconds), 0.0)
 
 
 def expired() -> bool:
@@ -121,8 +140,12 @@ def left_out(step: str) -> bool:
 def passed(what: str) -> None:
     """Record a step left out because the budget is spent (once per kind of step)."""
     state = _active.get()
-    if state is not None and what not in state.passed:
+    if state is None:
+        return
+    if what not in state.passed:
         state.passed.append(what)
+    if os.getpid() != state.owner and state.shared is not None:
+        state.shared[0] = 1  # for the process that opened the budget
 
 
 def progress(message) -> None:

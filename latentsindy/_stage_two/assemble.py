@@ -134,7 +134,8 @@ def _describe_origin(p):
 
 # what the discovery's max_time leaves out when it is spent before the result is made
 CHECKS = ("the checks that refit the chosen system (its simulated reference, terms beyond "
-          "the search, exchangeable, weakly supported and nearly needed terms)")
+          "the search, the folded system, exchangeable, weakly supported and nearly "
+          "needed terms)")
 
 
 @timed("checks and result")

@@ -119,8 +119,50 @@ def test_the_time_kept_for_closing_counts_to_the_end():
         budget.keep_for_closing(11.0)
         assert budget.expired() and budget.spent("a step")
         assert state.passed == ["a step"]
-    budget.keep_for_closing(11.0)
-    assert not budget.expired()
+        budget.keep_for_closing(0.5)  # a later, shorter training keeps the most asked
+        assert state.closing == 11.0
+    budget.keep_for_closing(11.0)  # outside a budget: nothing, and nothing carried over
+    with budget.budget(10.0) as state:
+        assert state.closing == 0.0 and not budget.expired()
+
+
+def test_a_step_a_helper_left_out_is_seen_by_the_parent():
+    """What a forked helper records is lost with it; that it left a step out is not."""
+    import os
+
+    with budget.budget(10.0) as state:
+        assert not state.cut_elsewhere()
+        budget.passed("a step here")  # the parent's own record is a list, as before
+        assert not state.cut_elsewhere()
+        pid = os.fork()
+        if pid == 0:  # the helper
+            budget.passed("a step there")
+            os._exit(0)
+        os.waitpid(pid, 0)
+        assert state.cut_elsewhere() and state.passed == ["a step here"]
+
+
+@pytest.mark.parametrize("helper_cut", [False, True])
+def test_a_call_ending_in_the_time_kept_for_its_result(prey, monkeypatch, helper_cut):
+    """A call that left nothing out and ends within the time kept for its result is
+    not flagged; one whose helper left a step out is, and the doubt says where."""
+    from latentsindy._stage_two import discover
+
+    finished = discover._discover
+
+    def ends_late(*args, **kwargs):
+        result = finished(*args, **kwargs)
+        budget.keep_for_closing(1e9)  # from here on the budget counts as spent
+        if helper_cut:
+            budget._active.get().shared[0] = 1
+        return result
+
+    monkeypatch.setattr(discover, "_discover", ends_late)
+    result = _discover(prey, max_time=1e6)
+    kinds = [d.kind for d in result.doubts]
+    assert ("time budget" in kinds) == helper_cut and result.confident != helper_cut
+    if helper_cut:
+        assert "left out: steps of the second process." in result.doubts[-1]
 
 
 def test_stage_one_keeps_its_second_phase_time_for_closing():

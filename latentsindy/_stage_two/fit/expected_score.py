@@ -28,7 +28,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from ..._core.budget import expired
+from ..._core.budget import spent
 from ..._core.local_fits import is_uniform
 from ..._core.noise_shape import level_profile
 from .held_out import cross_validate
@@ -36,6 +36,8 @@ from .refine import Fit, Problem
 from .shooting import BlowUp
 
 REPLICATES = 4  # simulated data sets; the reference is their mean score
+# what the discovery's max_time leaves out when it is spent before the reference starts
+REFERENCE = "a right system's held-out score, simulated (the reference)"
 SEED = 20261129  # fixed: the same data give the same reference
 MIN_SCORED = 2  # replicates refitted and scored, at least
 # A replicate's refit starts at the system and starts that simulated it, so it misfits
@@ -55,7 +57,7 @@ def expected_score(problem: Problem, fit: Fit, replicates: int = REPLICATES) -> 
     replicate's refit misses its data by more than ``REFITTED`` times their noise, when
     fewer than ``MIN_SCORED`` replicates could be refitted and scored, or when
     ``max_time`` is spent."""
-    if expired():  # every fit would stop before its first step: no reference
+    if spent(REFERENCE):  # every fit would stop before its first step: no reference
         return None
     if not fit.continuous:
         # no trajectory of its system, so no data a right system would give: the
