@@ -16,7 +16,7 @@ complete; the structure search between the training's phases keeps the second ph
 expected time in reserve, starts a neighbour only where one at the last pace would end
 in time, and the adaptive priors only where their first fit (up to ``EM_STEPS``
 roughness searches, each at the Gaussian fits' pace) would (:func:`reserving`). From
-timeVAE's second phase on, the call keeps as much time again to its end
+the second phase on, the call keeps as much time again to its end
 (:func:`keep_for_closing`) for what runs whatever the budget: the chosen structure's
 posterior, stage two's judgement of stage one's own structure, the step under way and
 the result (whose checks that refit the chosen system are left out once the budget is

@@ -17,11 +17,13 @@ learning-rate decay.
 from __future__ import annotations
 
 import math
+import time
 
 import torch
 from torch import nn
 from tqdm.auto import tqdm
 
+from .._core.budget import keep_for_closing, reserving
 from .._core.timing import timed
 from ..generators.hypersindy import detach_state
 from .decisions import between_phases, freeze_constant_terms
@@ -80,16 +82,24 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
     n_states = float(xdot.shape[-1])
     history = []
     bar = tqdm(total=total_steps, disable=not verbose, desc="dynamic HyperSINDy", leave=False)
+    begin = time.perf_counter()
     for phase, n_epochs in ((1, epochs[0]), (2, epochs[1])):
         if phase == 2:
+            # max_time, as timeVAE's training (training.py): the decisions before the
+            # second phase keep its time (at the first phase's pace) in reserve, and
+            # the call keeps as much again to its end for what follows
+            second = (time.perf_counter() - begin) * n_epochs / max(epochs[0], 1)
+            keep_for_closing(second)
             with torch.no_grad():  # closed variation gates: fitted as constants from now on
                 model.time_varying *= (model.gates(False, model.log_alpha_var) > 0).to(
                     model.time_varying.dtype)
             model.log_alpha.requires_grad_(False)
             model.log_alpha_var.requires_grad_(False)
-            freeze_constant_terms(model, theta, xdot, weights, inputs, var_cost, free_rows)
-            between_phases(model, theta, xdot, weights, inputs, options.threshold, free_rows,
-                           decide)
+            with reserving(second):
+                freeze_constant_terms(model, theta, xdot, weights, inputs, var_cost,
+                                      free_rows)
+                between_phases(model, theta, xdot, weights, inputs, options.threshold,
+                               free_rows, decide)
             if options.mode == "online":
                 history += _online_pass(model, theta, xdot, weights, inputs, noise_var, starts,
                                         window, options, bayes, bar)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import sympy as sp
 
-from .._core.budget import spent
+from .._core.budget import left_out, spent
 from .._core.doubt import Doubt
 from .._core.parallel import map_on
 from .._core.timing import timed
@@ -31,7 +31,7 @@ from .doubts.terms import (
     weak_doubts,
     weakly_supported_terms,
 )
-from .fit.expected_score import REPLICATES, expected_score
+from .fit.expected_score import REFERENCE, REPLICATES, expected_score
 from .fit.held_out import by_recording
 from .fit.shooting import BlowUp
 from .fit.windows import WINDOWS, judged_part
@@ -207,7 +207,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
                None if best.scored else best.history[0], expected)
         + weak_check_doubts(expected, unaided, best.scored and np.isfinite(score),
                             (len(judged.groups), score_se) if by_recording(judged)
-                            else None)
+                            else None, left_out(CHECKS) or left_out(REFERENCE))
         + segment_constant_doubts(terms, names, system.n_observed, trajectories, stds)
         + first_integral_doubt(best, names)
         + exchange_doubts(exchangeable, system, rename, names_map)

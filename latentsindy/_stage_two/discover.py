@@ -142,8 +142,8 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         ``"time budget"`` saying what was not judged (so never ``confident``). Stage
         one's training (a fixed number of steps, seconds on most data, see ``timings``),
         its starting structures, the chosen structure's posterior and the fit under way
-        always complete (with timeVAE, the search keeps the training's second phase in
-        reserve, and the call as much again, to its end, for the result); the checks
+        always complete (the search keeps the training's second phase in reserve, and the
+        call as much again, to its end, for the result); the checks
         that refit the chosen system are left out once the time is spent.
         With ``verbose``, progress lines say which step runs and how many remain.
     device : str

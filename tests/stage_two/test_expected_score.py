@@ -320,3 +320,13 @@ def test_a_check_on_few_recordings_is_weak_when_its_score_is_uncertain():
     assert weak_check_doubts(1.05, "no recording is long enough", True, (20, 0.26)) == ()
     assert weak_check_doubts(1.05, None, False, (6, 0.87)) == ()
     assert weak_check_doubts(1.05, None, True, None) == ()
+
+
+def test_an_unmeasured_power_says_why():
+    """A law found without stage one whose check's power is unknown is flagged, with
+    the reason: its system could not be simulated, or max_time left the reference out."""
+    (cannot,) = weak_check_doubts(None, "no law in the derivatives", True)
+    assert "could not be simulated and refitted" in cannot
+    (late,) = weak_check_doubts(None, "no law in the derivatives", True, None, True)
+    assert "its power was not measured (max_time was spent first)" in late
+    assert weak_check_doubts(None, None, True, None, True) == ()  # stage one helped

@@ -165,13 +165,16 @@ def test_a_call_ending_in_the_time_kept_for_its_result(prey, monkeypatch, helper
         assert "left out: steps of the second process." in result.doubts[-1]
 
 
-def test_stage_one_keeps_its_second_phase_time_for_closing():
-    """Stage one's training keeps the second phase's expected time (at the first
-    phase's pace) to the end of the call, for what runs whatever the budget after it:
-    the structure search between the phases keeps twice that, and stage two stops that
-    much before the deadline."""
+@pytest.mark.parametrize("generator, steps", [
+    ("timevae", {"support_steps": 40, "refit_steps": 80}),
+    ("hypersindy", {"support_steps": 20, "refit_steps": 40, "min_epochs": 1, "window": 200})])
+def test_stage_one_keeps_its_second_phase_time_for_closing(generator, steps):
+    """Stage one's training (either generator) keeps the second phase's expected time
+    (at the first phase's pace) to the end of the call, for what runs whatever the
+    budget after it: the structure search between the phases keeps twice that, and
+    stage two stops that much before the deadline."""
     from latentsindy import DynamicSINDy
-    from latentsindy._stage_one import training
+    from latentsindy._stage_one import sequential, training
 
     data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=400, t_end=20.0, noise=0.01)
     kept = []
@@ -184,8 +187,9 @@ def test_stage_one_keeps_its_second_phase_time_for_closing():
 
     with pytest.MonkeyPatch.context() as mp, budget.budget(1e6) as state:
         mp.setattr(training, "between_phases", recorded)
+        mp.setattr(sequential, "between_phases", recorded)
         DynamicSINDy(library=ps.PolynomialLibrary(degree=3), verbose=False,
-                     training={"support_steps": 40, "refit_steps": 80}).fit(
+                     generator=generator, training=steps).fit(
             data.x, data.t, feature_names=["x", "y"])
         assert not budget.expired() and 0 < state.closing < state.elapsed()
         assert state.reserve == 0.0  # the phase's own reserve ends with it

@@ -94,14 +94,16 @@ def doubts(score, score_se, refinement, terms, hidden, unscored=None, expected=N
     return tuple(found)
 
 
-def weak_check_doubts(expected, unaided=None, scored=True, recordings=None):
+def weak_check_doubts(expected, unaided=None, scored=True, recordings=None,
+                      out_of_time=False):
     """The ``weak check`` doubt when the held-out check has little power on these data
     (a right system's simulated score ``expected`` above ``POWER``), or, for a law found
     without stage one (``unaided`` says why: then the check is the only one that could
     see a wrong carrier's approximation), when its power could not be measured (a
-    scored system that could not be simulated and refitted). ``recordings``: (count,
-    standard error of the score) where whole recordings were held out; the check is
-    weak when two standard errors exceed ``SCORE_RESOLUTION``."""
+    scored system that could not be simulated and refitted, or, with ``out_of_time``,
+    whose reference ``max_time`` left out). ``recordings``: (count, standard error of
+    the score) where whole recordings were held out; the check is weak when two
+    standard errors exceed ``SCORE_RESOLUTION``."""
     if (recordings is not None and scored and np.isfinite(recordings[1])
             and SIGNIFICANCE * recordings[1] > SCORE_RESOLUTION):
         count, se = recordings
@@ -113,7 +115,9 @@ def weak_check_doubts(expected, unaided=None, scored=True, recordings=None):
         return ()
     if expected is not None and expected <= POWER:
         return ()
-    power = ("its power could not be measured (the fitted system could not be simulated "
+    power = ("its power was not measured (max_time was spent first)" if expected is None
+             and out_of_time else
+             "its power could not be measured (the fitted system could not be simulated "
              "and refitted)" if expected is None else
              f"little power (a right system would score ~{expected:.3g} noise variances "
              "here: what it holds out is predicted from a few noisy samples)")
