@@ -70,6 +70,15 @@ class Budget:
         """Whether the deadline itself has passed (the time kept in reserve aside)."""
         return self.max_time is not None and self.elapsed() > self.max_time
 
+    def left_out(self) -> str | None:
+        """What was left out, here or in a helper, as text; None where nothing was and
+        the deadline has not passed (a call that ends in the time kept for its result,
+        having left nothing out, is not flagged)."""
+        steps = self.passed + (["steps of the second process"] if self.cut_elsewhere() else [])
+        if steps or self.overran():
+            return "; ".join(steps) or "nothing, but the call ran past it"
+        return None
+
     def expired(self) -> bool:
         return (self.max_time is not None
                 and self.elapsed() + self.reserve + self.closing > self.max_time)

@@ -143,8 +143,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         one's training (a fixed number of steps, seconds on most data, see ``timings``),
         its starting structures, the chosen structure's posterior and the fit under way
         always complete (the search keeps the training's second phase in reserve, and the
-        call as much again, to its end, for the result); the checks
-        that refit the chosen system are left out once the time is spent.
+        call as much again for the result, whose refitting checks it then leaves out).
         With ``verbose``, progress lines say which step runs and how many remain.
     device : str
         Torch device for stage one's training and the refinement's integrations
@@ -169,11 +168,8 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         result = _discover(x_observed, t, feature_names, hidden_terms, hidden_names,
                            closure_library, stage_one, n_samples, refine, gaps, outliers,
                            max_hidden, device, seed, verbose)
-    # a step left out here or in a helper process, or the deadline passed (a call that
-    # ends in the time kept for its result, having left nothing out, is not flagged)
-    elsewhere = ["steps of the second process"] if spent.cut_elsewhere() else []
-    if spent.passed or elsewhere or spent.overran():
-        left = "; ".join(spent.passed + elsewhere) or "nothing, but the call ran past it"
+    left = spent.left_out()  # None: nothing left out, the deadline not passed
+    if left is not None:
         result = dataclasses.replace(result, doubts=result.doubts + (Doubt(
             "time budget", f"max_time={max_time:g} s was spent ({spent.elapsed():.1f} s "
             f"used) before the judgement ended; left out: {left}. The system shown is the "

@@ -140,6 +140,9 @@ def test_a_step_a_helper_left_out_is_seen_by_the_parent():
             os._exit(0)
         os.waitpid(pid, 0)
         assert state.cut_elsewhere() and state.passed == ["a step here"]
+        assert state.left_out() == "a step here; steps of the second process"
+    with budget.budget(10.0) as state:
+        assert state.left_out() is None  # nothing left out, the deadline ahead
 
 
 @pytest.mark.parametrize("helper_cut", [False, True])
