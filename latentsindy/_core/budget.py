@@ -15,9 +15,9 @@ data), its starting structures and the posterior of the structure chosen always
 complete; the structure search between the training's phases keeps the second phase's
 expected time in reserve, starts a neighbour only where one at the last pace would end
 in time, and the adaptive priors only where their first fit (up to ``EM_STEPS``
-roughness searches, each at the Gaussian fits' pace) would (:func:`reserving`). From
-the second phase on, the call keeps as much time again to its end
-(:func:`keep_for_closing`) for what runs whatever the budget: the chosen structure's
+roughness searches, each at the Gaussian fits' pace) would (:func:`reserving`,
+``spent(step, ahead)``). From the second phase on, the call keeps as much time again to
+its end (:func:`before_a_phase`) for what runs whatever the budget: the chosen structure's
 posterior, stage two's judgement of stage one's own structure, the step under way and
 the result (whose checks that refit the chosen system are left out once the budget is
 spent).
@@ -126,18 +126,34 @@ def keep_for_closing(seconds: float) -> None:
         state.closing = max(state.closing, float(seconds), 0.0)
 
 
+@contextlib.contextmanager
+def before_a_phase(seconds: float):
+    """Inside the block ``seconds`` are kept for a phase that follows it whatever the
+    budget (stage one's second training phase, at the first one's pace), and from now
+    to the end of the call as much again (:func:`keep_for_closing`) for what follows
+    that phase whatever the budget: the chosen structure's posterior, stage two's
+    judgement of stage one's own structure, the step under way and the result (on
+    Hindmarsh-Rose what ran past the deadline without it took 0.4-1.0 s, where the phase
+    takes 1.7 s). Nothing outside a budget."""
+    keep_for_closing(seconds)
+    with reserving(seconds):
+        yield
+
+
 def expired() -> bool:
     """Whether the active budget is spent (never outside a budget)."""
     state = _active.get()
     return state is not None and state.expired()
 
 
-def spent(step: str) -> bool:
-    """Whether the active budget is spent; if so, ``step`` is recorded as left out."""
-    if expired():
-        passed(step)
-        return True
-    return False
+def spent(step: str, ahead: float = 0.0) -> bool:
+    """Whether the active budget is spent, or would be ``ahead`` seconds from now (a
+    step that long would not end in time); if so, ``step`` is recorded as left out."""
+    with reserving(ahead):
+        if not expired():
+            return False
+    passed(step)
+    return True
 
 
 def left_out(step: str) -> bool:

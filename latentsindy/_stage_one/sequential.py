@@ -23,7 +23,7 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
-from .._core.budget import keep_for_closing, reserving
+from .._core.budget import before_a_phase
 from .._core.timing import timed
 from ..generators.hypersindy import detach_state
 from .decisions import between_phases, freeze_constant_terms
@@ -86,16 +86,14 @@ def train_sequential(model, theta, xdot, weights, inputs, noise_var, free_rows,
     for phase, n_epochs in ((1, epochs[0]), (2, epochs[1])):
         if phase == 2:
             # max_time, as timeVAE's training (training.py): the decisions before the
-            # second phase keep its time (at the first phase's pace) in reserve, and
-            # the call keeps as much again to its end for what follows
+            # second phase keep its time (at the first phase's pace) in reserve
             second = (time.perf_counter() - begin) * n_epochs / max(epochs[0], 1)
-            keep_for_closing(second)
             with torch.no_grad():  # closed variation gates: fitted as constants from now on
                 model.time_varying *= (model.gates(False, model.log_alpha_var) > 0).to(
                     model.time_varying.dtype)
             model.log_alpha.requires_grad_(False)
             model.log_alpha_var.requires_grad_(False)
-            with reserving(second):
+            with before_a_phase(second):
                 freeze_constant_terms(model, theta, xdot, weights, inputs, var_cost,
                                       free_rows)
                 between_phases(model, theta, xdot, weights, inputs, options.threshold,

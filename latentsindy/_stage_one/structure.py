@@ -146,9 +146,8 @@ class StructureSearch:
             for j in fit.constant:
                 if j in proposed:
                     continue
-                with reserving(self.pace.get(fit.adaptive, 0.0)):  # max_time: at the pace
-                    if spent(_STOPPED):
-                        return fit
+                if spent(_STOPPED, ahead=self.pace.get(fit.adaptive, 0.0)):  # at the pace
+                    return fit
                 alt = self.model.fit(set(fit.support) - {j}, fit.varying, fit.adaptive)
                 if np.isfinite(alt.score) and not _earns(fit, alt):
                     cheap.append(alt)
@@ -227,9 +226,8 @@ class StructureSearch:
         end where the two climbs ended at different structures (else None). Where the
         discovery's ``max_time`` has run out: ``best`` (no neighbours, no other)."""
         # max_time: an adaptive fit runs to its end, EM_STEPS searches at the Gaussian pace
-        with reserving(EM_STEPS * self.pace.get(False, 0.0)):
-            if spent(GAUSSIAN):
-                return best, [], None
+        if spent(GAUSSIAN, ahead=EM_STEPS * self.pace.get(False, 0.0)):
+            return best, [], None
         begin = time.perf_counter()
         chosen = self.admissible(best.support, best.varying, True)
         self.pace[True] = time.perf_counter() - begin  # an adaptive climb's first pace

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .._core.budget import keep_for_closing, reserving
+from .._core.budget import before_a_phase
 from .._core.threads import flush_denormals, single_thread
 from .._core.timing import timed
 from .decisions import between_phases
@@ -146,14 +146,9 @@ def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
         for phase, steps in ((1, options.support_steps), (2, options.refit_steps)):
             if phase == 2:
                 # max_time: the second phase runs whatever the budget; the decisions
-                # before it keep its time (at the first phase's pace) in reserve, and
-                # the call keeps as much again to its end for what follows whatever the
-                # budget (the chosen structure's posterior, stage two's judgement of
-                # stage one's own structure, the result; on Hindmarsh-Rose what ran
-                # past the deadline before took 0.4-1.0 s, where the phase takes 1.7 s)
+                # before it keep its time (at the first phase's pace) in reserve
                 pace = (time.perf_counter() - begin) / max(options.support_steps, 1)
-                keep_for_closing(pace * steps)
-                with reserving(pace * steps):
+                with before_a_phase(pace * steps):
                     between_phases(model, theta, xdot, weights, inputs, options.threshold,
                                    free_rows, decide)
                 opt.release()
