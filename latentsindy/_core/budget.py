@@ -23,11 +23,12 @@ the result (whose checks that refit the chosen system are left out once the budg
 spent).
 
 The deadline is a point on the monotonic clock, so a forked helper process
-(:mod:`.parallel`) reads the same one. What a helper records is lost with it, but that
-it recorded a step is not: a byte of memory shared across the fork says so
-(:meth:`Budget.cut_elsewhere`). ``discover_hidden`` flags a result where a step was left
-out in any process, or where the call ran past its deadline, with what this process
-recorded.
+(:mod:`.parallel`) reads the same one. A helper's own records are lost with it, so what
+it leaves out is also written to a page of memory shared across the fork
+(:meth:`Budget.elsewhere`), and :func:`left_out` and :meth:`Budget.left_out` read both.
+``discover_hidden`` flags a result where a step was left out in any process, naming
+each; a call that left nothing out but ended past its deadline gets a note, not a doubt
+(its judgement is complete).
 """
 
 from __future__ import annotations
@@ -38,9 +39,11 @@ import os
 import sys
 import time
 from contextvars import ContextVar
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from tqdm.auto import tqdm
+
+from .doubt import Doubt
 
 
 @dataclass
@@ -52,37 +55,82 @@ class Budget:
     reserve: float = 0.0  # seconds kept for work that runs whatever the budget
     closing: float = 0.0  # seconds kept for making the result (:func:`keep_for_closing`)
     owner: int = field(default_factory=os.getpid)
-    # one byte shared with forked helpers: set where a helper left a step out
+    # memory shared with forked helpers: the steps they left out, one per line
     shared: mmap.mmap | None = field(default=None, repr=False)
+    # the shared memory's file, where the platform has memfd (Linux, the one platform
+    # with helpers): its lock is held around a helper's record (two helpers, an outer
+    # and an inner map's, can write at once)
+    lock_fd: int | None = field(default=None, repr=False)
+    # what helpers left out, read from the shared memory when the budget closed
+    seen_elsewhere: list[str] = field(default_factory=list)
 
     def __post_init__(self):
         if self.max_time is not None and self.shared is None:
-            self.shared = mmap.mmap(-1, 1)  # anonymous, so shared across fork
+            if hasattr(os, "memfd_create"):  # Linux, the one platform with helpers
+                self.lock_fd = os.memfd_create("latentsindy-budget")
+                os.ftruncate(self.lock_fd, _SHARED_BYTES)
+                self.shared = mmap.mmap(self.lock_fd, _SHARED_BYTES)
+            else:
+                self.shared = mmap.mmap(-1, _SHARED_BYTES)  # anonymous: shared across fork
+
+    def close(self) -> None:
+        """Keep what helpers left out, and release the shared memory and its file (the
+        budget's block has ended)."""
+        if self.shared is not None:
+            self.seen_elsewhere = self.elsewhere()
+            self.shared.close()
+        if self.lock_fd is not None:
+            os.close(self.lock_fd)
+        self.shared = self.lock_fd = None
 
     def elapsed(self) -> float:
         return time.monotonic() - self.start
 
+    def elsewhere(self) -> list[str]:
+        """The steps forked helper processes left out, in the order first recorded."""
+        if self.shared is None:
+            return list(self.seen_elsewhere)
+        text = self.shared[:].split(b"\0", 1)[0].decode("utf-8", "replace")
+        return [line for line in text.split("\n") if line]
+
+    def record_elsewhere(self, what: str) -> None:
+        """Record ``what`` in the shared memory (a helper's record, under the lock).
+        Where the page is full, a last line says that more was left out."""
+        if self.shared is None:
+            return
+        what = " ".join(what.split())  # one line
+        with _locked(self.lock_fd):
+            steps = self.elsewhere()
+            if what in steps or _MORE in steps:
+                return
+            line = (what + "\n").encode("utf-8")
+            end = sum(len(s.encode("utf-8")) + 1 for s in steps)
+            if end + len(line) + len(_MORE) + 2 > _SHARED_BYTES:
+                line = (_MORE + "\n").encode("utf-8")
+            self.shared[end:end + len(line)] = line
+
     def cut_elsewhere(self) -> bool:
-        """Whether a forked helper process left a step out (what, it could not say)."""
-        return self.shared is not None and self.shared[0] == 1
+        """Whether a forked helper process left a step out."""
+        return bool(self.elsewhere())
 
     def overran(self) -> bool:
         """Whether the deadline itself has passed (the time kept in reserve aside)."""
         return self.max_time is not None and self.elapsed() > self.max_time
 
     def left_out(self) -> str | None:
-        """What was left out, here or in a helper, as text; None where nothing was and
-        the deadline has not passed (a call that ends in the time kept for its result,
-        having left nothing out, is not flagged)."""
-        steps = self.passed + (["steps of the second process"] if self.cut_elsewhere() else [])
-        if steps or self.overran():
-            return "; ".join(steps) or "nothing, but the call ran past it"
-        return None
+        """What was left out, here or in a helper, as text; None where nothing was
+        (a call that ends in the time kept for its result, or past its deadline, having
+        left nothing out, was judged in full)."""
+        steps = self.passed + [s for s in self.elsewhere() if s not in self.passed]
+        return "; ".join(steps) or None
 
     def expired(self) -> bool:
         return (self.max_time is not None
                 and self.elapsed() + self.reserve + self.closing > self.max_time)
 
+
+_SHARED_BYTES = 4096
+_MORE = "more steps of the second process"
 
 _active: ContextVar[Budget | None] = ContextVar("latentsindy_budget", default=None)
 
@@ -96,6 +144,42 @@ def budget(max_time: float | None, verbose: bool = False):
         yield state
     finally:
         _active.reset(token)
+        state.close()
+
+
+def stamped(result, state: Budget):
+    """``result`` (a :class:`~latentsindy.HiddenDiscovery`) with the ``"time budget"``
+    doubt where ``state``'s budget left a step out (in any process), naming each; with a
+    note where it left nothing out but the call ended past its deadline (the judgement
+    is complete: no doubt); else unchanged."""
+    left = state.left_out()
+    if left is not None:
+        return replace(result, doubts=result.doubts + (Doubt(
+            "time budget", f"max_time={state.max_time:g} s was spent ({state.elapsed():.1f} "
+            f"s used) before the judgement ended; left out: {left}. The system shown is the "
+            "best found by then. Raise max_time (or leave it unset) for a full "
+            "judgement"),))
+    if state.overran():
+        return replace(result, notes=result.notes + (
+            f"max_time={state.max_time:g} s was passed ({state.elapsed():.1f} s used) while "
+            "the result was made; nothing was left out: the judgement is complete",))
+    return result
+
+
+@contextlib.contextmanager
+def _locked(fd: int | None):
+    """An exclusive lock on the file ``fd`` for the block (a process's own, so it
+    excludes a forked one; none where ``fd`` is None)."""
+    if fd is None:
+        yield
+        return
+    import fcntl  # fd is a memfd's, so this is Linux
+
+    fcntl.lockf(fd, fcntl.LOCK_EX)
+    try:
+        yield
+    finally:
+        fcntl.lockf(fd, fcntl.LOCK_UN)
 
 
 @contextlib.contextmanager
@@ -157,9 +241,9 @@ def spent(step: str, ahead: float = 0.0) -> bool:
 
 
 def left_out(step: str) -> bool:
-    """Whether ``step`` was recorded as left out (by this process)."""
+    """Whether ``step`` was recorded as left out (by this process or a helper)."""
     state = _active.get()
-    return state is not None and step in state.passed
+    return state is not None and (step in state.passed or step in state.elsewhere())
 
 
 def passed(what: str) -> None:
@@ -170,7 +254,7 @@ def passed(what: str) -> None:
     if what not in state.passed:
         state.passed.append(what)
     if os.getpid() != state.owner and state.shared is not None:
-        state.shared[0] = 1  # for the process that opened the budget
+        state.record_elsewhere(what)  # for the process that opened the budget
 
 
 def progress(message) -> None:

@@ -186,6 +186,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
     if expected is not None:
         notes.append(f"a right system's held-out score at this sampling: {expected:.3g} "
                      "(simulated from the fitted system, its noise level and times)")
+    unmeasured = left_out(CHECKS) or left_out(REFERENCE)  # max_time left the reference out
     part = judged_part(problem) if best.scored else None
     judged = problem if part is None else part  # what the score was taken on
     if part is not None:
@@ -204,10 +205,10 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
         alternatives, unsure, refinement, tuple(notes), list(ctx.times), list(ctx.observed),
         hidden, [np.asarray(h) for h in best.proposal.hidden], trajectories[0][0].copy(),
         doubts(score, score_se, refinement, terms, names,
-               None if best.scored else best.history[0], expected)
+               None if best.scored else best.history[0], expected, unmeasured)
         + weak_check_doubts(expected, unaided, best.scored and np.isfinite(score),
                             (len(judged.groups), score_se) if by_recording(judged)
-                            else None, left_out(CHECKS) or left_out(REFERENCE))
+                            else None, unmeasured)
         + segment_constant_doubts(terms, names, system.n_observed, trajectories, stds)
         + first_integral_doubt(best, names)
         + exchange_doubts(exchangeable, system, rename, names_map)

@@ -18,7 +18,7 @@ import pysindy as ps
 
 from .._core import recordings
 from .._core import validation as val
-from .._core.budget import budget, expired, spent
+from .._core.budget import budget, expired, spent, stamped
 from .._core.derivatives import (
     AdaptiveSavitzkyGolay,
     noise_level,
@@ -144,7 +144,9 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         its starting structures, the chosen structure's posterior and the fit under way
         always complete (the search keeps the training's second phase in reserve, and the
         call as much again for the result, whose refitting checks it then leaves out).
-        With ``verbose``, progress lines say which step runs and how many remain.
+        A call that left nothing out but ended past ``max_time`` has a note saying so,
+        not the doubt. With ``verbose``, progress lines say which step runs and how
+        many remain.
     device : str
         Torch device for stage one's training and the refinement's integrations
         ("cpu", default, or "cuda"). A GPU pays off for long series in stage one; the
@@ -164,17 +166,11 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
                                   support=support)
     if max_time is not None:
         max_time = val.check_positive(max_time, "max_time")
-    with recording() as seconds, budget(max_time, verbose) as spent:
+    with recording() as seconds, budget(max_time, verbose) as state:
         result = _discover(x_observed, t, feature_names, hidden_terms, hidden_names,
                            closure_library, stage_one, n_samples, refine, gaps, outliers,
                            max_hidden, device, seed, verbose)
-    left = spent.left_out()  # None: nothing left out, the deadline not passed
-    if left is not None:
-        result = dataclasses.replace(result, doubts=result.doubts + (Doubt(
-            "time budget", f"max_time={max_time:g} s was spent ({spent.elapsed():.1f} s "
-            f"used) before the judgement ended; left out: {left}. The system shown is the "
-            "best found by then. Raise max_time (or leave it unset) for a full "
-            "judgement"),))
+    result = stamped(result, state)  # what max_time left out: a doubt
     return dataclasses.replace(result, timings=dict(seconds))
 
 

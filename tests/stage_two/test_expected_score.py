@@ -330,3 +330,21 @@ def test_an_unmeasured_power_says_why():
     (late,) = weak_check_doubts(None, "no law in the derivatives", True, None, True)
     assert "its power was not measured (max_time was spent first)" in late
     assert weak_check_doubts(None, None, True, None, True) == ()  # stage one helped
+
+
+def test_a_score_doubt_whose_reference_max_time_left_out_says_so():
+    """A score above ~1 is compared with 1 where the simulated reference is missing;
+    where max_time left it out, the doubt says that a right system's score here was not
+    simulated and may be higher (sparse samples: a right law can score several)."""
+    from types import SimpleNamespace
+
+    from latentsindy._stage_two.doubts.checks import doubts
+
+    fit = SimpleNamespace(continuity_gap=0.0, status="converged", iterations=3)
+    (plain,) = doubts(4.0, 0.1, fit, [], [])
+    assert "expected ~1)" in plain
+    (late,) = doubts(4.0, 0.1, fit, [], [], out_of_time=True)
+    assert "expected ~1; a right system's score at this sampling was not simulated" in late
+    (simulated,) = doubts(9.0, 0.1, fit, [], [], expected=2.0, out_of_time=True)
+    assert "expected ~2 for a right system at this sampling, simulated" in simulated
+    assert doubts(1.05, 0.1, fit, [], [], out_of_time=True) == ()

@@ -127,8 +127,11 @@ def test_the_time_kept_for_closing_counts_to_the_end():
 
 
 def test_a_step_a_helper_left_out_is_seen_by_the_parent():
-    """What a forked helper records is lost with it; that it left a step out is not."""
+    """What a forked helper records is lost with it; what it left out is not, by name,
+    here and in the text of the doubt, and after the budget's block has closed."""
     import os
+
+    from latentsindy._stage_two.fit.expected_score import REFERENCE
 
     with budget.budget(10.0) as state:
         assert not state.cut_elsewhere()
@@ -137,18 +140,63 @@ def test_a_step_a_helper_left_out_is_seen_by_the_parent():
         pid = os.fork()
         if pid == 0:  # the helper
             budget.passed("a step there")
+            budget.passed(REFERENCE)
+            budget.passed("a step there")  # once per kind of step
             os._exit(0)
         os.waitpid(pid, 0)
         assert state.cut_elsewhere() and state.passed == ["a step here"]
-        assert state.left_out() == "a step here; steps of the second process"
+        assert budget.left_out(REFERENCE) and not budget.left_out("another step")
+        assert state.left_out() == f"a step here; a step there; {REFERENCE}"
+    assert state.shared is None  # released, what it held kept
+    assert state.left_out() == f"a step here; a step there; {REFERENCE}"
     with budget.budget(10.0) as state:
         assert state.left_out() is None  # nothing left out, the deadline ahead
 
 
-@pytest.mark.parametrize("helper_cut", [False, True])
-def test_a_call_ending_in_the_time_kept_for_its_result(prey, monkeypatch, helper_cut):
+def test_two_helpers_recording_at_once_lose_nothing():
+    """An outer and an inner map's helpers can both write what they left out at the
+    same moment (the budget runs out for both at once): each record is kept whole."""
+    import os
+
+    with budget.budget(10.0) as state:
+        (ready_r, ready_w), (go_r, go_w) = os.pipe(), os.pipe()
+        pids = []
+        for who in ("outer", "inner"):
+            pid = os.fork()
+            if pid == 0:
+                os.write(ready_w, b"r")
+                os.read(go_r, 1)  # both start together
+                for k in range(150):
+                    budget.passed(f"{who} {k}")
+                os._exit(0)
+            pids.append(pid)
+        for _ in pids:
+            os.read(ready_r, 1)
+        os.write(go_w, b"go")
+        for pid in pids:
+            os.waitpid(pid, 0)
+        for fd in (ready_r, ready_w, go_r, go_w):
+            os.close(fd)
+        steps = state.elsewhere()
+    assert sorted(steps) == sorted(f"{who} {k}" for who in ("outer", "inner")
+                                   for k in range(150))
+
+
+def test_a_full_record_says_that_more_was_left_out():
+    with budget.budget(10.0) as state:
+        for k in range(200):
+            state.record_elsewhere(f"a step whose name is long, number {k:03d}")
+        steps = state.elsewhere()
+    assert steps[-1] == "more steps of the second process" and len(steps) < 200
+    assert steps[:3] == [f"a step whose name is long, number {k:03d}" for k in range(3)]
+
+
+@pytest.mark.parametrize("ending", ["in time", "helper cut", "past the deadline"])
+def test_a_call_ending_in_the_time_kept_for_its_result(prey, monkeypatch, ending):
     """A call that left nothing out and ends within the time kept for its result is
-    not flagged; one whose helper left a step out is, and the doubt says where."""
+    not flagged; one whose helper left a step out is, and the doubt names the step; one
+    that left nothing out but ended past its deadline gets a note, not a doubt (its
+    judgement is complete)."""
     from latentsindy._stage_two import discover
 
     finished = discover._discover
@@ -156,16 +204,23 @@ def test_a_call_ending_in_the_time_kept_for_its_result(prey, monkeypatch, helper
     def ends_late(*args, **kwargs):
         result = finished(*args, **kwargs)
         budget.keep_for_closing(1e9)  # from here on the budget counts as spent
-        if helper_cut:
-            budget._active.get().shared[0] = 1
+        if ending == "helper cut":
+            budget._active.get().record_elsewhere("a helper's step")
+        if ending == "past the deadline":
+            budget._active.get().start -= 2e6  # the deadline (1e6 s) is behind it
         return result
 
     monkeypatch.setattr(discover, "_discover", ends_late)
     result = _discover(prey, max_time=1e6)
     kinds = [d.kind for d in result.doubts]
-    assert ("time budget" in kinds) == helper_cut and result.confident != helper_cut
-    if helper_cut:
-        assert "left out: steps of the second process." in result.doubts[-1]
+    cut = ending == "helper cut"
+    assert ("time budget" in kinds) == cut and result.confident != cut
+    if cut:
+        assert "left out: a helper's step." in result.doubts[-1]
+    late = [n for n in result.notes if n.startswith("max_time=")]
+    assert len(late) == (ending == "past the deadline")
+    if late:
+        assert "nothing was left out: the judgement is complete" in late[0]
 
 
 @pytest.mark.parametrize("generator, steps", [

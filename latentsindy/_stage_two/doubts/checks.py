@@ -44,11 +44,13 @@ def reproduces(score, score_se, expected=1.0) -> bool:
     return score - SIGNIFICANCE * score_se <= limit and score <= FAR * limit
 
 
-def doubts(score, score_se, refinement, terms, hidden, unscored=None, expected=None):
+def doubts(score, score_se, refinement, terms, hidden, unscored=None, expected=None,
+           out_of_time=False):
     """The checks a refined system fails, each as a sentence with its remedy (its
     segments apart: :attr:`..fit.refine.Fit.continuous`); ``unscored`` is why it has
     no score ("not judged": ``max_time`` ran out first); ``expected``: a right system's
-    simulated score here (None: about 1)."""
+    simulated score here (None: about 1; with ``out_of_time``, ``max_time`` left that
+    reference out, and the score doubt says so)."""
     found = []
     if unscored == "not judged":
         found.append(Doubt("not scored", "the closed system was not scored on held-out "
@@ -60,8 +62,10 @@ def doubts(score, score_se, refinement, terms, hidden, unscored=None, expected=N
                      "integration blew up, or its hidden states jump between integration "
                      "segments): it was not checked against the data"))
     elif not reproduces(score, score_se, expected or 1.0):
-        reference = ("~1" if expected is None else
-                     f"~{max(expected, 1.0):.3g} for a right system at this sampling, simulated")
+        reference = (f"~{max(expected, 1.0):.3g} for a right system at this sampling, "
+                     "simulated" if expected is not None else
+                     "~1; a right system's score at this sampling was not simulated (max_time "
+                     "was spent first) and may be higher" if out_of_time else "~1")
         found.append(Doubt(
             "score",
             f"the closed system does not reproduce held-out data down to their noise (score "
