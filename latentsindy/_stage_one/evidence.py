@@ -21,7 +21,7 @@ from threadpoolctl import threadpool_limits
 from .._core.budget import expired, left_out, passed
 from .._core.derivatives import choose_window
 from .._core.timing import timed
-from .structure import GAUSSIAN, EquationChoice, StructureSearch, thresholded_constants
+from .structure import GAUSSIAN, EquationChoice, StructureSearch
 from .vcm import LevelGram, spline_basis
 from .vcm_fit import EquationFit, EquationModel
 
@@ -132,6 +132,22 @@ class VaryingCoefficients:
         if not adaptive:
             passed(GAUSSIAN)
         return self.models[i].fit(support, varying, adaptive=adaptive)
+
+
+def thresholded_constants(gram, threshold, candidates):
+    """Support of a sequentially thresholded least-squares fit with constant
+    coefficients (STLSQ on the integral form), among ``candidates``."""
+    active = sorted(candidates)
+    for _ in range(len(active) + 1):
+        if not active:
+            break
+        g = gram.const[np.ix_(active, active)]
+        coef = np.linalg.lstsq(g, gram.const_y[active], rcond=None)[0]
+        keep = [j for j, c in zip(active, coef, strict=True) if abs(c) >= threshold]
+        if keep == active:
+            break
+        active = keep
+    return set(active)
 
 
 __all__ = ["EquationChoice", "VaryingCoefficients", "resolution"]

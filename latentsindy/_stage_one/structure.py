@@ -15,7 +15,8 @@ every variation:
   smallest term, until it is;
 * a greedy search moves one step at a time (add a constant term, drop a term, freeze
   or free a term's variation) to the best admissible neighbour while that raises the
-  score; it starts from the generator's structure, from the generator's support with
+  score (from more than ``DESCENT`` varying terms, first to the best with one variation
+  frozen); it starts from the generator's structure, from the generator's support with
   every term constant, and from a sequentially thresholded constant fit, so a
   generator that lost a term does not decide the outcome;
 * with Gaussian slope priors first (fast), then again with adaptive ones (a sharp
@@ -47,6 +48,9 @@ LOG_PRIOR_ODDS = np.log(20.0)  # price of one more term, or one more varying ter
 SIDE_BY_SIDE = 0.15
 # A climbing step expected to take this long (seconds) is announced in the progress lines
 ANNOUNCE = 1.0
+# A climb at more varying terms than this sheds them: its step fits the v structures
+# with one variation frozen (a fit costs ~v^3), the full step only where none scores higher
+DESCENT = 3
 _PRIORS = {False: "Gaussian", True: "adaptive"}
 # what the discovery's max_time leaves out when it runs out during the search
 _STOPPED = "stage one's structure search (stopped where it was)"
@@ -165,8 +169,12 @@ class StructureSearch:
         added = set(other.constant) - set(fit.support) - set(proposed)
         return not (added and fit.varying and self.free and not _earns(other, fit))
 
-    def neighbours(self, fit):
+    def neighbours(self, fit, shed=False):
+        """The structures one step away; with ``shed``, only those with one variation
+        frozen (a descent from many varying terms, see ``DESCENT``)."""
         support, varying = set(fit.support), set(fit.varying)
+        if shed:
+            return [(support, varying - {k}) for k in sorted(varying)]
         out = []
         if self.free:
             n_features = self.model.g.n_features
@@ -180,10 +188,11 @@ class StructureSearch:
         """Greedy ascent from ``fit``; returns the last fit and its neighbours' fits
         (none where the discovery's ``max_time`` ran out: the ascent stops there)."""
         seconds = self.pace.get(adaptive, 0.0)  # per neighbour, at the last step's pace
+        shed = len(fit.varying) > DESCENT
         while True:
             if spent(_STOPPED):
                 return fit, []
-            step = self.neighbours(fit)
+            step = self.neighbours(fit, shed)
             if seconds * len(step) >= ANNOUNCE:
                 progress(f"stage one's structure search, {self.label}: {len(step)} "
                          f"neighbours to fit with {_PRIORS[adaptive]} priors, about "
@@ -201,8 +210,11 @@ class StructureSearch:
             self.pace[adaptive] = seconds
             best = max(near, key=penalised, default=None)
             if best is None or penalised(best) <= penalised(fit) + 1e-9:
+                if shed:  # no frozen variation scores higher: the full step
+                    shed = False
+                    continue
                 return fit, near
-            fit = best
+            fit, shed = best, len(best.varying) > DESCENT
 
     def _adaptive_climbs(self, best, found):
         """The adaptive climb from the Gaussian search's best structure and, where
@@ -297,22 +309,6 @@ def _earns(fit, without):
     by 10%."""
     return (float(np.sum(without.edf)) >= 2.0 * float(np.sum(fit.edf))
             or without.noise_variance >= 1.1 * fit.noise_variance)
-
-
-def thresholded_constants(gram, threshold, candidates):
-    """Support of a sequentially thresholded least-squares fit with constant
-    coefficients (STLSQ on the integral form), among ``candidates``."""
-    active = sorted(candidates)
-    for _ in range(len(active) + 1):
-        if not active:
-            break
-        g = gram.const[np.ix_(active, active)]
-        coef = np.linalg.lstsq(g, gram.const_y[active], rcond=None)[0]
-        keep = [j for j, c in zip(active, coef, strict=True) if abs(c) >= threshold]
-        if keep == active:
-            break
-        active = keep
-    return set(active)
 
 
 def in_turn(search: StructureSearch, step, adaptive, start):
