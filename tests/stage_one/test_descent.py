@@ -5,6 +5,7 @@ of them scores higher (``structure.DESCENT``)."""
 from types import SimpleNamespace
 
 import numpy as np
+from test_side_by_side import oscillator  # xdot = a(t) y, ydot = -x
 
 from latentsindy._core import parallel
 from latentsindy._stage_one import structure
@@ -79,12 +80,7 @@ def test_shedding_ends_where_the_full_climb_does_on_a_real_model(monkeypatch):
     every term varying, the climb that sheds ends at the structure the full climb
     ends at, with fewer fits."""
     monkeypatch.setattr(parallel, "_enabled", False)
-    t = np.linspace(0, 40, 1500)
-    a = 1.0 + 0.5 * np.sin(0.2 * t)
-    phase = np.cumsum(np.sqrt(a)) * (t[1] - t[0])
-    x = np.column_stack([np.sin(phase) * a ** 0.25, np.cos(phase) / a ** 0.25])
-    x += 0.01 * x.std(axis=0) * np.random.default_rng(0).standard_normal(x.shape)
-    theta = np.column_stack([np.ones(len(t)), x, x ** 2])
+    t, x, theta = oscillator()
     scale = np.sqrt(np.mean(np.gradient(x, t, axis=0) ** 2, axis=0))
     ends = {}
     for descent in (DESCENT, 100):
