@@ -57,21 +57,18 @@ class Budget:
     owner: int = field(default_factory=os.getpid)
     # memory shared with forked helpers: the steps they left out, one per line
     shared: mmap.mmap | None = field(default=None, repr=False)
-    # the shared memory's file, where the platform has memfd (Linux, the one platform
-    # with helpers): its lock is held around a helper's record (two helpers, an outer
-    # and an inner map's, can write at once)
+    # the shared memory's file (a memfd: Linux, the one platform with helpers), locked
+    # around a helper's record (an outer and an inner map's helpers can write at once)
     lock_fd: int | None = field(default=None, repr=False)
     # what helpers left out, read from the shared memory when the budget closed
     seen_elsewhere: list[str] = field(default_factory=list)
 
     def __post_init__(self):
-        if self.max_time is not None and self.shared is None:
-            if hasattr(os, "memfd_create"):  # Linux, the one platform with helpers
-                self.lock_fd = os.memfd_create("latentsindy-budget")
-                os.ftruncate(self.lock_fd, _SHARED_BYTES)
-                self.shared = mmap.mmap(self.lock_fd, _SHARED_BYTES)
-            else:
-                self.shared = mmap.mmap(-1, _SHARED_BYTES)  # anonymous: shared across fork
+        if (self.max_time is not None and self.shared is None
+                and hasattr(os, "memfd_create")):  # Linux, the one platform with helpers
+            self.lock_fd = os.memfd_create("latentsindy-budget")
+            os.ftruncate(self.lock_fd, _SHARED_BYTES)
+            self.shared = mmap.mmap(self.lock_fd, _SHARED_BYTES)
 
     def close(self) -> None:
         """Keep what helpers left out, and release the shared memory and its file (the
@@ -108,10 +105,6 @@ class Budget:
             if end + len(line) + len(_MORE) + 2 > _SHARED_BYTES:
                 line = (_MORE + "\n").encode("utf-8")
             self.shared[end:end + len(line)] = line
-
-    def cut_elsewhere(self) -> bool:
-        """Whether a forked helper process left a step out."""
-        return bool(self.elsewhere())
 
     def overran(self) -> bool:
         """Whether the deadline itself has passed (the time kept in reserve aside)."""
@@ -167,12 +160,9 @@ def stamped(result, state: Budget):
 
 
 @contextlib.contextmanager
-def _locked(fd: int | None):
+def _locked(fd: int):
     """An exclusive lock on the file ``fd`` for the block (a process's own, so it
-    excludes a forked one; none where ``fd`` is None)."""
-    if fd is None:
-        yield
-        return
+    excludes a forked one)."""
     import fcntl  # fd is a memfd's, so this is Linux
 
     fcntl.lockf(fd, fcntl.LOCK_EX)

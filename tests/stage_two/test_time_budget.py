@@ -134,9 +134,9 @@ def test_a_step_a_helper_left_out_is_seen_by_the_parent():
     from latentsindy._stage_two.fit.expected_score import REFERENCE
 
     with budget.budget(10.0) as state:
-        assert not state.cut_elsewhere()
+        assert not state.elsewhere()
         budget.passed("a step here")  # the parent's own record is a list, as before
-        assert not state.cut_elsewhere()
+        assert not state.elsewhere()
         pid = os.fork()
         if pid == 0:  # the helper
             budget.passed("a step there")
@@ -144,7 +144,7 @@ def test_a_step_a_helper_left_out_is_seen_by_the_parent():
             budget.passed("a step there")  # once per kind of step
             os._exit(0)
         os.waitpid(pid, 0)
-        assert state.cut_elsewhere() and state.passed == ["a step here"]
+        assert state.elsewhere() and state.passed == ["a step here"]
         assert budget.left_out(REFERENCE) and not budget.left_out("another step")
         assert state.left_out() == f"a step here; a step there; {REFERENCE}"
     assert state.shared is None  # released, what it held kept
