@@ -221,8 +221,7 @@ class Integrator:
         # overflowing sensitivities become inf silently, as in torch (the states
         # themselves are bounded: BlowUp)
         with np.errstate(over="ignore", invalid="ignore"):
-            z = rk4(func, z0, grid, getattr(group, "steps", None))  # (G, K, ...)
-            dz = func(z)
+            z, dz = rk4(func, z0, grid, getattr(group, "steps", None))  # (G, K, ...)
             z, dz = z.swapaxes(0, 1), dz.swapaxes(0, 1)  # (K, G, ...)
             ends = z[:, -1]
             # the caller's algebra (normal equations, residuals) is on the CPU, in torch
@@ -246,11 +245,13 @@ def _cat(arrays, axis):
 
 def rk4(func, y0, grid, cache=None):
     """Classical Runge-Kutta (the 3/8 rule, torchdiffeq's fixed-grid ``rk4``, the same
-    arithmetic) on ``grid``: the states at every grid time, (G, ...), numpy arrays or
-    tensors like ``y0``. Written out because the refinement integrates thousands of
-    small batches, where the general solver's bookkeeping cost as much as the
-    arithmetic. A grid (K, G) gives each of the K rows of ``y0`` its own steps (a
-    :class:`Batch`; kept in the dict ``cache``, if given, once made)."""
+    arithmetic) on ``grid``: the states at every grid time and their slopes ``func``
+    there, two arrays (G, ...), numpy arrays or tensors like ``y0``. Written out because
+    the refinement integrates thousands of small batches, where the general solver's
+    bookkeeping cost as much as the arithmetic. A grid (K, G) gives each of the K rows
+    of ``y0`` its own steps (a :class:`Batch`; kept in the dict ``cache``, if given,
+    once made). A step's first stage is the slope at its start, so only the last grid
+    point's slope costs another evaluation."""
     if grid.ndim == 1:
         steps = np.diff(np.asarray(grid.tolist())).tolist()
     else:
@@ -263,7 +264,9 @@ def rk4(func, y0, grid, cache=None):
                 steps = [torch.as_tensor(a, dtype=y0.dtype, device=y0.device) for a in steps]
             if cache is not None:
                 cache[key] = steps
-    out = [y0]
+    if isinstance(y0, np.ndarray):
+        return _rk4_numpy(func, y0, steps)
+    out, slopes = [y0], []
     y = y0
     for dt in steps:
         k1 = func(y)
@@ -272,7 +275,45 @@ def rk4(func, y0, grid, cache=None):
         k4 = func(y + dt * (k1 - k2 + k3))
         y = y + (k1 + 3 * (k2 + k3) + k4) * dt * 0.125
         out.append(y)
-    return np.stack(out) if isinstance(y0, np.ndarray) else torch.stack(out)
+        slopes.append(k1)
+    slopes.append(func(y))
+    return torch.stack(out), torch.stack(slopes)
+
+
+def _rk4_numpy(func, y0, steps):
+    """:func:`rk4` in numpy, each step's stages and state written in place into
+    preallocated arrays: the same operations in the same order (products and sums
+    with their operands swapped, which IEEE arithmetic leaves exact), fewer arrays."""
+    z = np.empty((len(steps) + 1, *y0.shape))
+    dz = np.empty_like(z)
+    z[0] = y0
+    t = np.empty_like(y0)
+    for i, dt in enumerate(steps):
+        y, after = z[i], z[i + 1]
+        k1 = dz[i] = func(y)
+        np.multiply(k1, dt, out=t)  # y + dt * k1 / 3
+        t *= _ONE_THIRD
+        t += y
+        k2 = func(t)
+        np.multiply(k1, _ONE_THIRD, out=t)  # y + dt * (k2 - k1 / 3)
+        np.subtract(k2, t, out=t)
+        t *= dt
+        t += y
+        k3 = func(t)
+        np.subtract(k1, k2, out=t)  # y + dt * (k1 - k2 + k3)
+        t += k3
+        t *= dt
+        t += y
+        k4 = func(t)
+        np.add(k2, k3, out=after)  # y + (k1 + 3 (k2 + k3) + k4) dt / 8
+        after *= 3
+        after += k1
+        after += k4
+        after *= dt
+        after *= 0.125
+        after += y
+    dz[-1] = func(z[-1])
+    return z, dz
 
 
 _ONE_THIRD = 1 / 3
