@@ -3,7 +3,8 @@
 For each family and draw (``benchmarks/_families.py``, default settings, 1% noise) one
 ``discover_hidden`` call runs alone in this process (no other job beside it), then 20
 pysindy SINDy fits (STLSQ, polynomials of degree 3) of the same system with every state
-observed (the clean states plus 1% noise) are timed in the same run: the ratio says what
+observed (the clean states plus 1% noise) are timed in the same run, three times, the
+fastest kept (``pysindy_seconds``): the ratio says what
 discovery costs in units of the plain regression a user would run if nothing were
 hidden. Prints a row per call and the medians per family, and the stages' median split
 (``result.timings``).
@@ -57,20 +58,28 @@ from latentsindy import discover_hidden  # noqa: E402
 from latentsindy._core import parallel  # noqa: E402
 
 PYSINDY_FITS = 20
+PYSINDY_REPEATS = 3  # the fits are timed this many times, the fastest kept
 
 
-def pysindy_seconds(d, noise, seed=0):
-    """Wall seconds of ``PYSINDY_FITS`` SINDy fits with every state observed."""
+def pysindy_seconds(d, noise, seed=0, repeats=PYSINDY_REPEATS):
+    """Wall seconds of ``PYSINDY_FITS`` SINDy fits with every state observed: the
+    fastest of ``repeats`` runs. Timed once, right after a discovery, the fits ran up
+    to 40% slower than on the next runs (prey-only LV, 2026-12-02: 0.16-0.21 s against
+    0.12-0.13 s; not so after a call without the second process), which made the
+    ratio look better than it is."""
     full = np.hstack([d.observed_clean, d.hidden_true])
     rng = np.random.default_rng(seed)
     noisy = full + noise * full.std(axis=0) * rng.standard_normal(full.shape)
-    start = time.perf_counter()
+    best = np.inf
     with warnings.catch_warnings():  # STLSQ's default threshold may empty an equation
         warnings.simplefilter("ignore")
-        for _ in range(PYSINDY_FITS):
-            ps.SINDy(optimizer=ps.STLSQ(),
-                     feature_library=ps.PolynomialLibrary(degree=3)).fit(noisy, t=d.t)
-    return time.perf_counter() - start
+        for _ in range(repeats):
+            start = time.perf_counter()
+            for _ in range(PYSINDY_FITS):
+                ps.SINDy(optimizer=ps.STLSQ(),
+                         feature_library=ps.PolynomialLibrary(degree=3)).fit(noisy, t=d.t)
+            best = min(best, time.perf_counter() - start)
+    return best
 
 
 def one(family, index, noise, span=1, max_time=None):
