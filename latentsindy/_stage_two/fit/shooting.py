@@ -284,7 +284,7 @@ def _rk4_numpy(func, y0, steps):
     """:func:`rk4` in numpy, each step's stages and state written in place into
     preallocated arrays: the same operations in the same order (products and sums
     with their operands swapped, which IEEE arithmetic leaves exact), fewer arrays."""
-    z = np.empty((len(steps) + 1, *y0.shape))
+    z = np.empty((len(steps) + 1, *y0.shape), dtype=y0.dtype)
     dz = np.empty_like(z)
     z[0] = y0
     t = np.empty_like(y0)
