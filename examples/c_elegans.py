@@ -29,6 +29,8 @@ import numpy as np
 
 from latentsindy import celegans
 
+OUTPUT = Path(__file__).resolve().parent / "output"  # beside this script, from any folder
+
 MARGIN_FRAMES = 5  # a switch in the last frames leaves no trace in the data
 
 
@@ -47,7 +49,7 @@ def switch_time_error(found, true, t):
 
 
 def main(layout="v5", data=None, n_frames=3000, n_worms=1, stage_one=True, training=None,
-         output="examples/output", seed=0):
+         output=OUTPUT, seed=0):
     truths = None
     if data is None:
         pairs = [celegans.switching_worm(n_frames=n_frames, seed=seed + i,

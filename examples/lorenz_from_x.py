@@ -33,6 +33,8 @@ import sympy as sp
 
 from latentsindy import discover_hidden, systems
 
+OUTPUT = Path(__file__).resolve().parent / "output"  # beside this script, from any folder
+
 SIGMA, RHO, BETA = 10.0, 28.0, 8.0 / 3.0
 X, H0, H1 = sp.symbols("x h0 h1", real=True)
 
@@ -87,7 +89,7 @@ def compare(result) -> dict:
             "missing": sorted(missing)}
 
 
-def main(noise=0.01, output="examples/output", verbose=True, seed=0):
+def main(noise=0.01, output=OUTPUT, verbose=True, seed=0):
     data = simulate_data(noise, seed)
     result = discover_hidden(data.x[:, :1], ps.PolynomialLibrary(degree=2), t=data.t,
                              feature_names=["x"], verbose=verbose, seed=seed)

@@ -23,6 +23,8 @@ import sympy as sp
 
 from latentsindy import discover_hidden, systems
 
+OUTPUT = Path(__file__).resolve().parent / "output"  # beside this script, from any folder
+
 ALPHA, BETA, GAMMA, DELTA = 1.0, 0.1, 1.5, 0.075
 X, H = sp.symbols("x h", real=True)
 # the hidden equation after the change of variables h = alpha - beta * y
@@ -37,7 +39,7 @@ def equation_errors(found: dict, truth: dict) -> tuple[dict, list, list]:
     return errors, extra, missing
 
 
-def main(noise_levels=(0.0, 0.01), n_times=2000, training=None, output="examples/output",
+def main(noise_levels=(0.0, 0.01), n_times=2000, training=None, output=OUTPUT,
          verbose=True, seed=0):
     results = {}
     for noise in noise_levels:

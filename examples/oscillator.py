@@ -22,6 +22,8 @@ import sympy as sp
 
 from latentsindy import discover_hidden, systems
 
+OUTPUT = Path(__file__).resolve().parent / "output"  # beside this script, from any folder
+
 B = sp.Symbol("B", real=True)
 TRUE_HIDDEN = {sp.Integer(1): -6.0, B: 5.0, B**2: -1.0}
 
@@ -33,7 +35,7 @@ def simulate_data(n_times, noise, seed):
                                        noise=noise, seed=seed)
 
 
-def main(noise_levels=(0.0, 0.01), n_times=2000, training=None, output="examples/output",
+def main(noise_levels=(0.0, 0.01), n_times=2000, training=None, output=OUTPUT,
          verbose=True, seed=0):
     results = {}
     for noise in noise_levels:

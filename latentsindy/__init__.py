@@ -17,8 +17,9 @@ with known truth), :mod:`latentsindy.generators` (stage one's deep generative mo
 (the paper's baselines).
 """
 
-import warnings
-from importlib.metadata import PackageNotFoundError, version
+import warnings as _warnings
+from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
+from importlib.metadata import version as _version
 
 from . import baselines, celegans, generators, options, results, systems
 from ._batch import Run, discover_many
@@ -29,8 +30,8 @@ from ._stage_two.discover import discover_hidden
 from ._stage_two.result import HiddenDiscovery
 
 try:
-    __version__ = version("latentsindy")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree
+    __version__ = _version("latentsindy")
+except _PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0.0.0"
 
 # Names that 0.1 exported from the top level and 0.2 keeps in a namespace: still
@@ -46,7 +47,7 @@ _MOVED = {
 def __getattr__(name):
     if name in _MOVED:
         where = _MOVED[name]
-        warnings.warn(f"latentsindy.{name} moved to latentsindy.{where}.{name} in 0.2; "
+        _warnings.warn(f"latentsindy.{name} moved to latentsindy.{where}.{name} in 0.2; "
                       f"import it from there (from latentsindy.{where} import {name}).",
                       DeprecationWarning, stacklevel=2)
         return getattr(globals()[where], name)

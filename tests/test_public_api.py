@@ -28,6 +28,9 @@ def test_top_level_keeps_the_verbs_and_main_classes():
         for name in module.__all__:
             assert hasattr(module, name), (module.__name__, name)
     assert latentsindy.__version__ == "0.2.0"
+    # what a user sees with dir() or tab completion is the public surface alone
+    public = {n for n in dir(latentsindy) if not n.startswith("_")}
+    assert public == set(latentsindy.__all__) - {"__version__"}
 
 
 @pytest.mark.parametrize("name", sorted(MOVED))

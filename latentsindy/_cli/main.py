@@ -138,7 +138,7 @@ def _discover_batch(args, files, observed, library, closure, hidden_names) -> in
                          device=args.device,
                          seeds=[args.seed])
     if args.out:
-        _progress(args, f"results and runs.csv written to {args.out}/ as they finished")
+        _progress(args, f"results and runs.csv written to {Path(args.out)}/ as they finished")
     writer = csv.DictWriter(sys.stdout, fieldnames=COLUMNS, lineterminator="\n")
     writer.writeheader()
     writer.writerows(r.row() for r in runs)

@@ -17,13 +17,19 @@ from sympy.parsing.sympy_parser import (
 _TRANSFORMS = standard_transformations + (implicit_multiplication_application, convert_xor)
 
 
-def check_library(library):
-    """Return a fresh copy of a pysindy library (so the user's object is never mutated)."""
+def check_library(library, what: str = "library"):
+    """Return a fresh copy of a pysindy library (so the user's object is never mutated);
+    ``what`` names the argument in the error."""
     if library is None:
         return ps.PolynomialLibrary(degree=2)
-    if not isinstance(library, ps.feature_library.base.BaseFeatureLibrary):
+    base = ps.feature_library.base.BaseFeatureLibrary
+    if isinstance(library, type) and issubclass(library, base):
+        raise TypeError(f"{what} must be a pysindy feature library object; got the class "
+                        f"{library.__name__} itself: call it, e.g. "
+                        f"{library.__name__}() with its settings.")
+    if not isinstance(library, base):
         raise TypeError(
-            "library must be a pysindy feature library (e.g. ps.PolynomialLibrary(degree=2)); "
+            f"{what} must be a pysindy feature library (e.g. ps.PolynomialLibrary(degree=2)); "
             f"got {type(library).__name__}."
         )
     return copy.deepcopy(library)

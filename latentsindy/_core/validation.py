@@ -39,8 +39,16 @@ def numeric_2d(x, what: str) -> np.ndarray:
     if arr.shape[0] < 2 or arr.shape[1] == 0:
         raise ValueError(f"{what} must hold a time series of shape (n_times, n_states); got "
                          f"shape {arr.shape}: at least {MIN_TIMES} samples of at least one "
-                         "state are needed (hundreds are better).")
+                         f"state are needed (hundreds are better).{_transposed(arr, what)}")
     return arr
+
+
+def _transposed(arr, what: str) -> str:
+    """A hint for an array that looks transposed (few rows, many columns), else ''."""
+    if arr.ndim == 2 and arr.shape[0] < MIN_TIMES <= arr.shape[1]:
+        return (f" It looks transposed: rows are samples and columns states; pass "
+                f"{what}.T.")
+    return ""
 
 
 def _as_2d(x, what: str) -> np.ndarray:
@@ -79,7 +87,7 @@ def as_trajectories(x, what: str = "x") -> list[np.ndarray]:
         if tr.shape[0] < MIN_TIMES:
             raise ValueError(
                 f"Series too short: trajectory {k} of {what} has {tr.shape[0]} time points; "
-                f"at least {MIN_TIMES} are needed (hundreds are better)."
+                f"at least {MIN_TIMES} are needed (hundreds are better).{_transposed(tr, what)}"
             )
     return trajs
 
@@ -108,7 +116,7 @@ def _one_times(t, n_times: int, what: str, missing=None) -> np.ndarray:
                             "sample times.")
         dt = float(t)
         if not np.isfinite(dt) or dt <= 0:
-            raise ValueError(f"The sample spacing {what} must be a positive number; got {t!r}.")
+            raise ValueError(f"The sample spacing {what} must be a positive number; got {dt!r}.")
         return np.arange(n_times) * dt
     raw = np.asarray(t)
     if raw.dtype.kind in _KINDS:
@@ -121,7 +129,9 @@ def _one_times(t, n_times: int, what: str, missing=None) -> np.ndarray:
     if arr.shape[0] != n_times:
         raise ValueError(
             f"Length mismatch: {what} has {arr.shape[0]} times but x has {n_times} rows; "
-            "they must match."
+            "they must match." + (" x is read with one row per sample, shape (n_times, "
+                                  "n_states): if its rows are states, pass x.T."
+                                  if n_times < arr.shape[0] else "")
         )
     keep = np.ones(n_times, dtype=bool) if missing is None else ~missing
     if not np.all(np.isfinite(arr[keep])):
@@ -132,8 +142,8 @@ def _one_times(t, n_times: int, what: str, missing=None) -> np.ndarray:
         k = int(np.argmax(steps <= 0))
         a, b = rows[k], rows[k + 1]
         raise ValueError(
-            f"{what} must be strictly increasing; {what}[{a}]={arr[a]!r} is followed by "
-            f"{what}[{b}]={arr[b]!r}. Sort the samples (with their rows of x) or drop "
+            f"{what} must be strictly increasing; {what}[{a}]={float(arr[a])!r} is followed "
+            f"by {what}[{b}]={float(arr[b])!r}. Sort the samples (with their rows of x) or drop "
             "duplicate times."
         )
     return arr

@@ -16,9 +16,12 @@ def load(path):
     their stored structure (a whitelist of node types and the result's own state
     names), networks from their settings with the stored weights; nothing in the file
     is unpickled or evaluated. A file that is neither, or is damaged, is refused with a
-    ValueError that names it.
+    ValueError that names it; a path to no file raises FileNotFoundError.
     """
     path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file (expected the .npz written by "
+                                "HiddenDiscovery.save or DynamicSINDy.save).")
     try:
         meta, arrays = read(path)
         if meta.get("format") == model_file.FORMAT:

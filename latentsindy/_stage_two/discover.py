@@ -14,7 +14,6 @@ import dataclasses
 import inspect
 
 import numpy as np
-import pysindy as ps
 
 from .._core import recordings
 from .._core import validation as val
@@ -220,11 +219,7 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
     trajs, times = [segments[k] for k in order], [seg_times[k] for k in order]
     use = use.reordered(order)
     names = val.check_feature_names(feature_names, trajs[0].shape[1])
-    closure_library = (ps.PolynomialLibrary(degree=2) if closure_library is None
-                       else closure_library)
-    if not isinstance(closure_library, ps.feature_library.base.BaseFeatureLibrary):
-        raise TypeError("closure_library must be a pysindy feature library; got "
-                        f"{type(closure_library).__name__}.")
+    closure_library = check_library(closure_library, "closure_library")
     val.check_positive(n_samples, "n_samples", integer=True)
     val.check_positive(max_hidden, "max_hidden", integer=True)
     device = val.check_device(device)

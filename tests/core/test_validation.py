@@ -47,7 +47,8 @@ def test_not_numeric():
 def test_t_not_increasing(data):
     t = data.t.copy()
     t[50] = t[49]
-    with pytest.raises(ValueError, match=r"strictly increasing; t\[49\]"):
+    with pytest.raises(ValueError, match=r"strictly increasing; t\[49\]=[0-9.]+ is followed by "
+                                         r"t\[50\]=[0-9.]+\. Sort the samples"):
         fit(data.x, t)
 
 
@@ -56,9 +57,35 @@ def test_length_mismatch(data):
         fit(data.x, data.t[:-1])
 
 
+def test_transposed_x_is_named(data):
+    """States in rows and samples in columns: the message says to pass x.T."""
+    with pytest.raises(ValueError, match=r"Length mismatch: t has 200 times but x has 2 rows; "
+                                         r"they must match\. x is read with one row per "
+                                         r"sample.*pass x\.T\."):
+        discover_hidden(data.x.T, t=data.t, verbose=False)
+    with pytest.raises(ValueError, match=r"got shape \(1, 200\): at least 16 samples.*It looks "
+                                         r"transposed.*pass x\.T\."):
+        fit(data.x[:, :1].T, 0.1)
+    with pytest.raises(ValueError, match=r"Series too short.*2 time points.*It looks "
+                                         r"transposed.*pass x\.T\."):
+        fit(data.x.T, 0.1)
+
+
+def test_too_few_rows_are_not_called_transposed(data):
+    with pytest.raises(ValueError, match="Series too short.*10 time points") as info:
+        fit(data.x[:10], 0.1)
+    assert "transposed" not in str(info.value)
+    with pytest.raises(ValueError, match="t has 199 times but x has 200 rows") as info:
+        fit(data.x, data.t[:-1])
+    assert "x.T" not in str(info.value)
+
+
 def test_bad_spacing(data):
-    with pytest.raises(ValueError, match="sample spacing t must be a positive number"):
+    with pytest.raises(ValueError, match="sample spacing t must be a positive number; "
+                                         r"got -0\.1\."):
         fit(data.x, -0.1)
+    with pytest.raises(ValueError, match=r"positive number; got -0\.5\.$"):
+        fit(data.x, np.float64(-0.5))
 
 
 def test_series_too_short(data):
@@ -73,8 +100,12 @@ def test_empty_library(data):
 
 
 def test_library_wrong_type(data):
-    with pytest.raises(TypeError, match="pysindy feature library"):
+    with pytest.raises(TypeError, match="pysindy feature library.*; got str"):
         fit(data.x, data.t, library="poly")
+    with pytest.raises(TypeError, match=r"library must be a pysindy feature library object; "
+                                        r"got the class PolynomialLibrary itself: call it, e\.g\. "
+                                        r"PolynomialLibrary\(\) with its settings\."):
+        fit(data.x, data.t, library=ps.PolynomialLibrary)
 
 
 def test_x_dot_shape(data):

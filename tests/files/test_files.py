@@ -125,6 +125,11 @@ def test_other_files_are_refused(tmp_path):
     broken.write_bytes(b"not a zip file")
     with pytest.raises(ValueError, match="broken.npz cannot be loaded"):
         load(broken)
+    with pytest.raises(FileNotFoundError, match=r"nothing\.npz: no such file \(expected the "
+                       r"\.npz written by HiddenDiscovery\.save"):
+        load(tmp_path / "nothing.npz")
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        load(tmp_path)  # a folder
 
 
 def test_only_result_types_have_a_file_format(tmp_path):

@@ -301,8 +301,13 @@ def test_no_law_found_is_a_result_that_says_so():
 
 def test_bad_closure_library():
     data = systems.lotka_volterra(n_times=300)
-    with pytest.raises(TypeError, match="closure_library must be a pysindy feature library"):
+    with pytest.raises(TypeError, match="closure_library must be a pysindy feature library.*; "
+                                        "got str"):
         discover_hidden(data.x[:, :1], t=data.t, closure_library="poly2", verbose=False)
+    with pytest.raises(TypeError, match="closure_library must be a pysindy feature library "
+                                        "object; got the class PolynomialLibrary itself"):
+        discover_hidden(data.x[:, :1], t=data.t, closure_library=ps.PolynomialLibrary,
+                        verbose=False)
 
 
 def test_several_trajectories():
