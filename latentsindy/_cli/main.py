@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import csv
 import glob
+import re
 import sys
 from pathlib import Path
 
@@ -51,6 +52,20 @@ def _names(text: str) -> list[str]:
     names = [n.strip() for n in text.split(",") if n.strip()]
     if not names:
         raise UsageError(f"expected comma-separated column names; got {text!r}.")
+    return names
+
+
+def _state_names(columns: list[str]) -> list[str]:
+    """The observed columns' names as the equations' state names: a column that is no
+    identifier (an array's column ``a:1``, a dataset path ``run1/x``) is named with
+    underscores (``a_1``, ``run1_x``)."""
+    names = []
+    for column in columns:
+        name = re.sub(r"\W", "_", column)
+        name = f"x_{name}" if not name or name[0].isdigit() else name
+        while name in names:
+            name += "_"
+        names.append(name)
     return names
 
 
@@ -100,7 +115,7 @@ def _discover(args) -> int:
     t, x = _series(files[0], args, observed)
     _progress(args, f"discovering hidden states from {len(observed)} observed column(s), "
                     f"{len(t)} samples ...")
-    result = discover_hidden(x, library, t=t, feature_names=observed,
+    result = discover_hidden(x, library, t=t, feature_names=_named(args, observed),
                              hidden_names=hidden_names, closure_library=closure,
                              generator=args.generator, refine=not args.no_refine,
                              gaps=args.gaps, outliers=args.outliers, max_hidden=args.max_hidden,
@@ -130,7 +145,7 @@ def _discover_batch(args, files, observed, library, closure, hidden_names) -> in
     runs = discover_many({k: x for k, (_, x) in data.items()}, library,
                          t={k: t for k, (t, _) in data.items()}, n_jobs=args.jobs,
                          backend=args.backend, scheduler=args.scheduler, out=args.out,
-                         feature_names=observed,
+                         feature_names=_named(args, observed),
                          hidden_names=hidden_names, closure_library=closure,
                          generator=args.generator, refine=not args.no_refine,
                          gaps=args.gaps, outliers=args.outliers, max_hidden=args.max_hidden,
@@ -179,6 +194,15 @@ def _simulate(args) -> int:
     else:
         np.savetxt(sys.stdout, table, delimiter=",", header=header, comments="")
     return 0 if sim.status == "success" else EXIT_FAILED
+
+
+def _named(args, observed):
+    """:func:`_state_names` of the observed columns, saying which were renamed."""
+    names = _state_names(observed)
+    renamed = [f"{c} as {n}" for c, n in zip(observed, names, strict=True) if c != n]
+    if renamed:
+        _progress(args, f"columns named in the equations: {', '.join(renamed)}")
+    return names
 
 
 def _progress(args, text):

@@ -27,7 +27,7 @@ class Simulation:
     ----------
     t : ndarray, shape (n_times,)
     x : ndarray, shape (n_times, n_states)
-        States; rows after a failure are NaN.
+        States; on a failure, the rows after where the solver got are NaN.
     state_names : tuple of str
     status : {"success", "blow_up", "step_budget"}
     message : str
@@ -53,12 +53,13 @@ def integrate(field, t, x0, state_names, *, bound, max_steps=20_000, rtol=1e-8, 
 
     ``bound`` is the largest magnitude any state may reach before the run is stopped
     and reported as a blow-up; ``max_steps`` caps the solver's steps over the whole
-    run (counted as right-hand-side evaluations / 6, dopri5's cost per step).
+    run (counted as right-hand-side evaluations / 6, dopri5's cost per step). On a
+    failure the rows up to where the solver got are integrated again, interval by
+    interval of ``t`` (within the same budget), and the rows after it are NaN.
     """
     t = np.array(t, dtype=float)  # a writable copy: torch refuses read-only buffers
     y0 = torch.tensor(np.asarray(x0, dtype=float))
-    tt = torch.tensor(t)
-    count = [0]
+    count, reached = [0], [float(t[0])]
 
     def func(ti, y):
         count[0] += 1
@@ -66,22 +67,51 @@ def integrate(field, t, x0, state_names, *, bound, max_steps=20_000, rtol=1e-8, 
             raise _Budget()
         if not bool(torch.all(torch.isfinite(y))) or float(y.abs().max()) > bound:
             raise _BlowUp(float(ti))
+        reached[0] = max(reached[0], float(ti))
         return field(ti, y)
 
-    nan = np.full((len(t), len(x0)), np.nan)
     try:
         with torch.no_grad():
-            sol = odeint(func, y0, tt, method="dopri5", rtol=rtol, atol=atol)
+            sol = odeint(func, y0, torch.tensor(t), method="dopri5", rtol=rtol, atol=atol)
     except _BlowUp as err:
-        return Simulation(t, nan, tuple(state_names), "blow_up",
-                          f"The closed system blew up ({err}); the discovered equations are "
-                          "unstable from this initial condition. Try another x0, a shorter "
-                          "horizon, or refit with more data or less noise.", count[0])
+        status = "blow_up"
+        message = (f"The closed system blew up ({err}); the discovered equations are "
+                   "unstable from this initial condition. Try another x0, a shorter "
+                   "horizon, or refit with more data or less noise.")
     except _Budget:
-        return Simulation(t, nan, tuple(state_names), "step_budget",
-                          f"The solver used its budget of {max_steps} steps before reaching "
-                          f"t={t[-1]:.6g} (the system is stiff or nearly singular); pass a larger "
-                          "max_steps or a shorter horizon.", count[0])
-    x = sol.numpy()
-    return Simulation(t, x, tuple(state_names), "success", "Integrated to the final time.",
-                      count[0])
+        status = "step_budget"
+        message = (f"The solver used its budget of {max_steps} steps before reaching "
+                   f"t={t[-1]:.6g} (the system is stiff or nearly singular); pass a larger "
+                   "max_steps or a shorter horizon.")
+    else:
+        return Simulation(t, sol.numpy(), tuple(state_names), "success",
+                          "Integrated to the final time.", count[0])
+    used = count[0]
+    count[0] = 0  # the rows before the failure, within a budget of their own
+    x = _before(func, y0, t, reached[0], rtol, atol)
+    return Simulation(t, x, tuple(state_names), status, message, used + count[0])
+
+
+def _before(func, y0, t, until, rtol, atol, chunk=64):
+    """The states at the times of ``t`` up to ``until`` (where the whole run failed),
+    integrated ``chunk`` intervals at a time and, from a chunk that fails, one interval
+    at a time, so that each row is kept once reached; NaN after them and wherever this
+    run fails too."""
+    x = np.full((len(t), len(y0)), np.nan)
+    x[0] = y0.numpy()
+    last = int(np.searchsorted(t, until, side="right")) - 1  # the last row to reach
+    i, y = 0, y0
+    with torch.no_grad():
+        while i < last:
+            j = min(i + chunk, last)
+            try:
+                sol = odeint(func, y, torch.tensor(t[i:j + 1]), method="dopri5",
+                             rtol=rtol, atol=atol)
+            except (_BlowUp, _Budget):
+                if chunk == 1:
+                    break
+                chunk = 1
+                continue
+            x[i + 1:j + 1] = sol[1:].numpy()
+            i, y = j, sol[-1]
+    return x

@@ -105,8 +105,9 @@ def judge_all(proposals, ctx: Context, options: RefineOptions | None = None,
     # the larger systems first: selecting terms costs about in proportion to the free
     # coefficients (more terms to drop, a larger fit each time; on Lorenz with z hidden
     # 14 free took 1.4 s, 6 free 0.3 s), so neither process ends on a long one alone
-    progress(f"selecting terms and scoring on held-out data: {len(finishing)} of "
-             f"{len(trials)} fitted hypotheses contend")
+    if trials:  # none where max_time ran out before the first fit
+        progress(f"selecting terms and scoring on held-out data: {len(finishing)} of "
+                 f"{len(trials)} fitted hypotheses contend")
     outcomes = iter(map_on(options.device, selected_and_scored, finishing,
                            cost=[t.fit.system.n_free for t in finishing]))
     # on a long recording the verdicts are the windows' (their first fits, selection and

@@ -233,8 +233,9 @@ def doubt(panel: bool, hidden: list[str]) -> Doubt:
 
 def _why(panel: bool) -> str:
     return ("no recording is long enough for stage one (16 samples between gaps)"
-            if panel else "stage one kept no term although the data move (its "
-            "differentiator's window spans much of a cycle: too few samples per cycle)")
+            if panel else "stage one kept no term although the data move (too few "
+            "samples per cycle, so that its differentiator's window spans much of one; or "
+            "spikes left in the data, as with outliers=\"keep\")")
 
 
 def stand_in(trajs, times, names, features, library, differentiation_method):

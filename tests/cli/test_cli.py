@@ -120,6 +120,28 @@ def test_columns_from_npz_and_hdf5(tmp_path):
         read_columns(tmp_path / "d.txt", ["t"])
 
 
+def test_array_columns_and_dataset_paths_become_state_names(tmp_path, capsys, monkeypatch):
+    """An observed column that is no identifier (``xy:1``, ``run/x``) is named with
+    underscores in the equations, and the progress says so."""
+    from latentsindy._cli import main as cli
+
+    assert cli._state_names(["xy:1", "run1/x", "x", "1st", "a-b", "a_b"]) == \
+        ["xy_1", "run1_x", "x", "x_1st", "a_b", "a_b_"]
+    seen = {}
+
+    def fake(x, library, *, t, feature_names, **kw):
+        seen["names"], seen["shape"] = feature_names, x.shape
+        raise SystemExit(0)
+
+    monkeypatch.setattr(cli, "discover_hidden", fake)
+    t, xy = np.linspace(0, 1, 50), np.arange(100.0).reshape(50, 2)
+    np.savez(tmp_path / "d.npz", t=t, xy=xy)
+    with pytest.raises(SystemExit):
+        main(["discover", str(tmp_path / "d.npz"), "--time", "t", "--observed", "xy:0,xy:1"])
+    assert seen == {"names": ["xy_0", "xy_1"], "shape": (50, 2)}
+    assert "columns named in the equations: xy:0 as xy_0, xy:1 as xy_1" in capsys.readouterr().err
+
+
 def test_missing_observed_values_are_gaps_and_can_be_refused(tmp_path, capsys):
     """Empty fields in an observed column are read as missing samples (split into
     segments by default); --gaps raise refuses them; a missing time is a data error."""

@@ -129,7 +129,8 @@ def test_blow_up_is_reported_not_hung(lv):
     sim = result.simulate(t=np.linspace(0, 50, 100), x0=[1e4, 50.0])
     assert sim.status in {"blow_up", "step_budget"}
     assert "x0" in sim.message or "max_steps" in sim.message
-    assert np.all(np.isnan(sim.x))
+    np.testing.assert_array_equal(sim.x[0], [1e4, 50.0])  # the rows before it are kept
+    assert np.all(np.isnan(sim.x[-1]))
 
 
 def test_summary_and_latex(lv):
