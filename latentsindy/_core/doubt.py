@@ -25,6 +25,8 @@ KINDS = {
     "folded law": "a law of one degree higher without the nested state fits as well",
     "first integral": "a first integral of the hidden law was not preferred",
     "observed function": "a hidden state is a function of the observed states",
+    "partial shift": "a hidden state shifted by part of an observed term gives the same "
+                     "dynamics with fewer terms",
     "redundant state": "two hidden states are one state written twice",
     "unresolved": "a hidden state moves faster than the sampling resolves",
     "free run": "the system integrated over a whole recording blows up or runs out of budget",

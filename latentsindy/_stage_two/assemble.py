@@ -19,6 +19,7 @@ from .doubts.runs import free_run_doubt
 from .doubts.states import (
     first_integral_doubt,
     observed_function_doubts,
+    partial_shift_doubts,
     redundant_state_doubts,
     unresolved_doubts,
 )
@@ -217,6 +218,7 @@ def from_verdicts(ordered, uncertain, ctx, coefs, given_names, unaided=None):
         + beyond_doubts(beyond, extended, rename, names_map)
         + folded_doubts(folded, score, score_se, best.size, names)
         + observed_function_doubts(system, names_map)
+        + partial_shift_doubts(system, names_map)
         + redundant_state_doubts(best, names_map, trajectories)
         + unresolved_doubts(system, trajectories, ctx.times, names_map))
     free = free_run_doubt(result, trajectories) if best.scored else ()

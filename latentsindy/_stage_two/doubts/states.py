@@ -14,6 +14,7 @@ from ..._core.doubt import Doubt
 from ..context import NEAR
 from ..fit.field import FeatureMap
 from ..rewrite.first_integral import integrated_system
+from ..rewrite.gauge import partial_shift
 from ..rewrite.observed_function import observed_function, state_function, trajectory_function
 
 # The hidden states' own dynamics (the hidden-hidden block of the Jacobian) may not be
@@ -69,6 +70,33 @@ def observed_function_doubts(system, names_map):
                    f"substituted, the system has one hidden state fewer (a closure_library "
                    f"with higher powers may find it)"))
     return tuple(out)
+
+
+def partial_shift_doubts(system, names_map):
+    """A doubt when one hidden state shifted by part of an observed term gives the same
+    dynamics with fewer terms (:func:`..rewrite.gauge.partial_shift`): the state is a
+    mix of a hidden and an observed variable, the mix is not fixed by the data (the
+    extra terms lie along it), and the sparser form is the law to read."""
+    found = partial_shift(system)
+    if found is None:
+        return ()
+    h, shift, laws, before, after = found
+    name = names_map.get(h.name, h.name)
+    new = sp.Symbol(f"{name}'", real=True)
+    rename = {s: sp.Symbol(names_map.get(s.name, s.name), real=True) for s in system.symbols}
+    rename[h] = new
+
+    def shown(expr):
+        return expr.xreplace({f: sp.Float(f, 4) for f in expr.atoms(sp.Float)}).xreplace(
+            rename)
+
+    laws_text = "; ".join(f"d{rename[s]}/dt = {shown(laws[s.name])}" for s in system.symbols)
+    return (Doubt("partial shift",
+                  f"{name} mixes a hidden variable with an observed one: in {new} = {name} "
+                  f"+ {shown(shift)} the same dynamics have {after} terms instead of "
+                  f"{before} ({laws_text}); the data do not fix the mix, so the extra terms "
+                  f"are not determined. Read the shifted form: the same system with the "
+                  f"fewest terms"),)
 
 
 def unresolved_rate(system, trajectories, times):

@@ -184,3 +184,88 @@ def same_up_to_shift(a, b) -> bool:
         if not gap <= SHIFT_MATCH * spread:  # NaN (a start that blew up) fails too
             return False
     return True
+
+
+# A coefficient of a shifted system is taken to cancel where it is below this share of
+# the sum of its parts' sizes (its polynomial in the shift, term by term). Along a gauge
+# freedom the terms cancel to the fit's precision (Hindmarsh-Rose at 5%, draw 2: y's
+# coefficient to 3e-5 of its parts), while a real term that a shift merely shrinks stays
+# well above (the same law's constant: 8e-3).
+CANCEL = 3e-3
+
+
+def partial_shift(system):
+    """The shift of one hidden state by a multiple of an observed monomial that gives
+    the same dynamics with fewer terms, or None: ``(h, shift, laws, before, after)``,
+    the shifted laws ({name: expression}, terms that cancel left out) and the term
+    counts. Only shifts along the non-constant observed terms of the one equation that
+    carries ``h`` (as ``h theta(x)``) are tried, each by the amounts that make one
+    coefficient of the shifted system vanish; the fewest terms win. A law reached by
+    the whole shift is :func:`shifted_system`'s; this finds the partial ones it does
+    not try (``h0 = I - z - 3.5 y`` where the carrier's equation has ``4.5 y``)."""
+    symbols, n_obs = system.symbols, system.n_observed
+    obs = symbols[:n_obs]
+    laws = {name: sp.expand(law) for name, law in system.rhs().items()}
+    before = _n_terms(laws, symbols)
+    c = sp.Dummy("c")
+    best = None
+    for h in symbols[n_obs:]:
+        rows = [x for x in obs if h in laws[x.name].free_symbols]
+        if len(rows) != 1:
+            continue
+        theta = sp.diff(laws[rows[0].name], h)
+        if theta == 0 or theta.free_symbols - set(obs):
+            continue
+        for term in sp.Add.make_args(laws[rows[0].name].subs(h, 0)):
+            ratio = sp.cancel(term / theta)
+            monomial = ratio.as_coeff_Mul()[1]
+            # a constant shift moves the coefficient's own offset, which the hidden state
+            # keeps by definition (prey-only LV's h = alpha - beta y, not -beta y)
+            if (term == 0 or not monomial.free_symbols or monomial.free_symbols - set(obs)
+                    or not monomial.is_polynomial(*obs)):
+                continue
+            shifted = shifted_laws(laws, {h: c * monomial}, obs)
+            for amount in _vanishing_amounts(shifted, symbols, c):
+                kept = _at(shifted, symbols, c, amount)
+                after = _n_terms(kept, symbols)
+                if after < before and (best is None or after < best[4]):
+                    best = (h, sp.Float(amount) * monomial, kept, before, after)
+    return best
+
+
+def _coefficients(laws, symbols, c):
+    """Every coefficient of the laws as a polynomial in ``c``."""
+    for law in laws.values():
+        for coef in sp.Poly(law, *symbols).as_dict().values():
+            yield sp.Poly(coef, c)
+
+
+def _vanishing_amounts(laws, symbols, c):
+    """The real, nonzero amounts of the shift at which a coefficient vanishes."""
+    out = set()
+    for poly in _coefficients(laws, symbols, c):
+        if poly.degree() >= 1:
+            out.update(float(r) for r in np.roots([float(a) for a in poly.all_coeffs()])
+                       if abs(np.imag(r)) < 1e-12 and np.real(r) != 0)
+    return sorted(out)
+
+
+def _at(laws, symbols, c, amount):
+    """The laws at ``c = amount``, with the terms that cancel (:data:`CANCEL`) left out."""
+    out = {}
+    for name, law in laws.items():
+        kept = sp.Integer(0)
+        for monomial, coef in sp.Poly(law, *symbols).as_dict().items():
+            parts = sp.Poly(coef, c).all_coeffs()[::-1]  # constant first
+            value = sum(float(a) * amount ** k for k, a in enumerate(parts))
+            size = sum(abs(float(a) * amount ** k) for k, a in enumerate(parts))
+            if size > 0 and abs(value) > CANCEL * size:
+                kept += sp.Float(value) * sp.Mul(*[s ** e for s, e in zip(symbols, monomial,
+                                                                           strict=True)])
+        out[name] = kept
+    return out
+
+
+def _n_terms(laws, symbols):
+    return sum(len(sp.Poly(law, *symbols).as_dict()) if law != 0 else 0
+               for law in laws.values())
