@@ -57,14 +57,20 @@ def _names(text: str) -> list[str]:
 
 def _state_names(columns: list[str]) -> list[str]:
     """The observed columns' names as the equations' state names: a column that is no
-    identifier (an array's column ``a:1``, a dataset path ``run1/x``) is named with
-    underscores (``a_1``, ``run1_x``)."""
+    (ASCII) identifier, such as an array's column ``a:1`` or a dataset path ``run1/x``,
+    is named with underscores (``a_1``, ``run1_x``), after any column already so named."""
+    valid = [c.isascii() and c.isidentifier() for c in columns]
+    taken = {c for c, ok in zip(columns, valid, strict=True) if ok}
     names = []
-    for column in columns:
-        name = re.sub(r"\W", "_", column)
+    for column, ok in zip(columns, valid, strict=True):
+        if ok:
+            names.append(column)
+            continue
+        name = re.sub(r"[^0-9A-Za-z_]", "_", column)
         name = f"x_{name}" if not name or name[0].isdigit() else name
-        while name in names:
+        while name in taken:
             name += "_"
+        taken.add(name)
         names.append(name)
     return names
 

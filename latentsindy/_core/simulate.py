@@ -52,18 +52,19 @@ def integrate(field, t, x0, state_names, *, bound, max_steps=20_000, rtol=1e-8, 
     """Integrate ``field`` from ``x0`` over ``t`` (dopri5, float64).
 
     ``bound`` is the largest magnitude any state may reach before the run is stopped
-    and reported as a blow-up; ``max_steps`` caps the solver's steps over the whole
-    run (counted as right-hand-side evaluations / 6, dopri5's cost per step). On a
-    failure the rows up to where the solver got are integrated again, interval by
-    interval of ``t`` (within the same budget), and the rows after it are NaN.
+    and reported as a blow-up; ``max_steps`` caps the solver's steps over the run
+    (counted as right-hand-side evaluations / 6, dopri5's cost per step). On a failure
+    the rows up to where the solver got are integrated again, in pieces of ``t`` (the
+    solver keeps no rows of a run it stops), with as many evaluations as the failed
+    run used plus ``RESTART`` for each piece; the rows after them are NaN.
     """
     t = np.array(t, dtype=float)  # a writable copy: torch refuses read-only buffers
     y0 = torch.tensor(np.asarray(x0, dtype=float))
-    count, reached = [0], [float(t[0])]
+    count, limit, reached = [0], [6 * max_steps], [float(t[0])]
 
     def func(ti, y):
         count[0] += 1
-        if count[0] > 6 * max_steps:
+        if count[0] > limit[0]:
             raise _Budget()
         if not bool(torch.all(torch.isfinite(y))) or float(y.abs().max()) > bound:
             raise _BlowUp(float(ti))
@@ -87,16 +88,19 @@ def integrate(field, t, x0, state_names, *, bound, max_steps=20_000, rtol=1e-8, 
         return Simulation(t, sol.numpy(), tuple(state_names), "success",
                           "Integrated to the final time.", count[0])
     used = count[0]
-    count[0] = 0  # the rows before the failure, within a budget of their own
-    x = _before(func, y0, t, reached[0], rtol, atol)
+    count[0], limit[0] = 0, used  # the rerun: what the failed run used, RESTART a piece
+    x = _before(func, y0, t, reached[0], rtol, atol, limit)
     return Simulation(t, x, tuple(state_names), status, message, used + count[0])
 
 
-def _before(func, y0, t, until, rtol, atol, chunk=64):
+RESTART = 60  # evaluations allowed for each restart of the rerun (a step size found again)
+
+
+def _before(func, y0, t, until, rtol, atol, limit, chunk=64):
     """The states at the times of ``t`` up to ``until`` (where the whole run failed),
     integrated ``chunk`` intervals at a time and, from a chunk that fails, one interval
     at a time, so that each row is kept once reached; NaN after them and wherever this
-    run fails too."""
+    run fails too. Each piece raises ``limit`` by ``RESTART``."""
     x = np.full((len(t), len(y0)), np.nan)
     x[0] = y0.numpy()
     last = int(np.searchsorted(t, until, side="right")) - 1  # the last row to reach
@@ -104,6 +108,7 @@ def _before(func, y0, t, until, rtol, atol, chunk=64):
     with torch.no_grad():
         while i < last:
             j = min(i + chunk, last)
+            limit[0] += RESTART
             try:
                 sol = odeint(func, y, torch.tensor(t[i:j + 1]), method="dopri5",
                              rtol=rtol, atol=atol)

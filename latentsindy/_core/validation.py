@@ -83,11 +83,13 @@ def as_trajectories(x, what: str = "x") -> list[np.ndarray]:
             f"All trajectories in {what} must have the same number of states; "
             f"got {sorted(n_states)}."
         )
+    listed = isinstance(x, list | tuple)
     for k, tr in enumerate(trajs):
         if tr.shape[0] < MIN_TIMES:
+            name = f"{what}[{k}]" if listed else what
             raise ValueError(
                 f"Series too short: trajectory {k} of {what} has {tr.shape[0]} time points; "
-                f"at least {MIN_TIMES} are needed (hundreds are better).{_transposed(tr, what)}"
+                f"at least {MIN_TIMES} are needed (hundreds are better).{_transposed(tr, name)}"
             )
     return trajs
 

@@ -125,8 +125,8 @@ def test_array_columns_and_dataset_paths_become_state_names(tmp_path, capsys, mo
     underscores in the equations, and the progress says so."""
     from latentsindy._cli import main as cli
 
-    assert cli._state_names(["xy:1", "run1/x", "x", "1st", "a-b", "a_b"]) == \
-        ["xy_1", "run1_x", "x", "x_1st", "a_b", "a_b_"]
+    assert cli._state_names(["xy:1", "run1/x", "x", "1st", "a-b", "a_b", "x\u00b2"]) == \
+        ["xy_1", "run1_x", "x", "x_1st", "a_b_", "a_b", "x_"]
     seen = {}
 
     def fake(x, library, *, t, feature_names, **kw):

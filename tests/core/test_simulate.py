@@ -4,6 +4,7 @@ against analytic solutions; the rest are NaN."""
 import numpy as np
 import pytest
 import torch
+from torchdiffeq import odeint
 
 from latentsindy._core.simulate import integrate
 
@@ -27,23 +28,45 @@ def test_a_blow_up_keeps_the_rows_before_it():
     assert sim.n_evaluations > 0
 
 
-def test_an_exhausted_budget_keeps_the_rows_reached():
-    t = np.linspace(0.0, 200.0, 2001)
-    sim = integrate(rotation, t, [1.0, 0.0], ("x", "y"), bound=10.0, max_steps=100)
+@pytest.mark.parametrize("max_steps", [20, 50, 300])
+def test_an_exhausted_budget_keeps_the_rows_reached(max_steps):
+    """Every row up to where the failed run got (the latest time it evaluated the field
+    at) is kept, however small the budget, within about twice the budget."""
+    times = []
+
+    def field(ti, y):
+        times.append(float(ti))
+        return rotation(ti, y)
+
+    t = np.linspace(0.0, 2000.0, 20001)
+    sim = integrate(field, t, [1.0, 0.0], ("x", "y"), bound=10.0, max_steps=max_steps)
     assert sim.status == "step_budget"
-    assert "budget of 100 steps before reaching t=200" in sim.message
+    assert f"budget of {max_steps} steps before reaching t=2000" in sim.message
+    reached = max(times[:6 * max_steps])  # the failed run's evaluations come first
     kept = ~np.isnan(sim.x[:, 0])
-    n = int(kept.sum())
-    assert kept[:n].all() and not kept[n:].any()  # a prefix of the rows
-    assert 10 < n < len(t)
+    assert kept.sum() == np.sum(t <= reached) and kept[:kept.sum()].all()
     np.testing.assert_allclose(sim.x[kept], np.column_stack([np.cos(t[kept]), np.sin(t[kept])]),
                                atol=1e-6)
+    assert 6 * max_steps < sim.n_evaluations == len(times) + 1 <= 2 * (6 * max_steps + 1) + 120
 
 
 def test_a_run_that_succeeds_is_the_single_integration():
+    """The success path is one odeint call: the same states to the bit, the same
+    evaluations."""
     t = np.linspace(0.0, 10.0, 101)
+    calls = [0]
+
+    def counted(ti, y):
+        calls[0] += 1
+        return rotation(ti, y)
+
     sim = integrate(rotation, t, [1.0, 0.0], ("x", "y"), bound=10.0)
     assert sim.success and sim.message == "Integrated to the final time."
+    with torch.no_grad():
+        direct = odeint(counted, torch.tensor([1.0, 0.0], dtype=torch.float64),
+                        torch.tensor(t), method="dopri5", rtol=1e-8, atol=1e-10)
+    np.testing.assert_array_equal(sim.x, direct.numpy())
+    assert sim.n_evaluations == calls[0]
     np.testing.assert_allclose(sim.x, np.column_stack([np.cos(t), np.sin(t)]), atol=1e-7)
 
 

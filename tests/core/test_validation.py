@@ -71,6 +71,11 @@ def test_transposed_x_is_named(data):
         fit(data.x.T, 0.1)
 
 
+def test_a_transposed_recording_in_a_list_is_named(data):
+    with pytest.raises(ValueError, match=r"trajectory 0 of x has 2 time points.*pass x\[0\]\.T\."):
+        fit([data.x.T, data.x.T], 0.1)
+
+
 def test_too_few_rows_are_not_called_transposed(data):
     with pytest.raises(ValueError, match="Series too short.*10 time points") as info:
         fit(data.x[:10], 0.1)

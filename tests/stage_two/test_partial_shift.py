@@ -87,3 +87,32 @@ def test_the_doubt_names_the_shift_and_the_sparser_laws():
                             "3.5*y the same dynamics have 10 terms instead of 12 (dx/dt = ")
     assert "dh'/dt = " in doubt and "Read the shifted form" in doubt
     assert partial_shift_doubts(system(hindmarsh_rose(0.0)), {"h0": "h"}) == ()
+
+
+def test_non_polynomial_features_are_left_alone():
+    """A law with a Fourier feature has no monomials to cancel: no shift, no error."""
+    x, h = sp.symbols("x h0", real=True)
+    features = (h, sp.sin(x), x)
+    coef = np.array([[1.0, 0.8, 0.3], [0.0, 0.0, -1.0]])
+    fourier = ParametricSystem(("x", "h0"), 1, features, coef, coef != 0)
+    assert partial_shift(fourier) is None
+
+
+def test_a_dense_law_saving_one_term_by_chance_is_not_a_mix():
+    """Every coefficient of a dense law vanishes at some amount of a shift, which
+    saves that one term alone: a gauge mix cancels two or more together."""
+    rng = np.random.default_rng(0)
+    monomials = [sp.Integer(1), X, Y, H, X**2, X * Y, Y**2, X * H, Y * H, H**2]
+    laws = {"x": H + sum(float(rng.normal()) * m for m in (X, Y, X**2)),
+            "y": sum(float(rng.normal()) * m for m in monomials if H not in m.free_symbols),
+            "h0": sum(float(rng.normal()) * m for m in monomials)}
+    assert partial_shift(system(laws)) is None
+
+
+def test_laws_beyond_the_term_cap_are_not_searched(monkeypatch):
+    from latentsindy._stage_two.rewrite import gauge
+
+    mixed = system(hindmarsh_rose(3.5))
+    assert partial_shift(mixed) is not None
+    monkeypatch.setattr(gauge, "MAX_TERMS", 11)  # the mix has 12
+    assert partial_shift(mixed) is None

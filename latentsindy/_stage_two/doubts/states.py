@@ -83,17 +83,18 @@ def partial_shift_doubts(system, names_map):
     h, shift, laws, before, after = found
     name = names_map.get(h.name, h.name)
     new = sp.Symbol(f"{name}'", real=True)
-    rename = {s: sp.Symbol(names_map.get(s.name, s.name), real=True) for s in system.symbols}
-    rename[h] = new
+    old = {s: sp.Symbol(names_map.get(s.name, s.name), real=True) for s in system.symbols}
+    rename = old | {h: new}
 
-    def shown(expr):
+    def shown(expr, names):
         return expr.xreplace({f: sp.Float(f, 4) for f in expr.atoms(sp.Float)}).xreplace(
-            rename)
+            names)
 
-    laws_text = "; ".join(f"d{rename[s]}/dt = {shown(laws[s.name])}" for s in system.symbols)
+    laws_text = "; ".join(f"d{rename[s]}/dt = {shown(laws[s.name], rename)}"
+                          for s in system.symbols)
     return (Doubt("partial shift",
-                  f"{name} mixes a hidden variable with an observed one: in {new} = {name} "
-                  f"+ {shown(shift)} the same dynamics have {after} terms instead of "
+                  f"{name} mixes a hidden variable with an observed one: in {new} = "
+                  f"{shown(h + shift, old)} the same dynamics have {after} terms instead of "
                   f"{before} ({laws_text}); the data do not fix the mix, so the extra terms "
                   f"are not determined. Read the shifted form: the same system with the "
                   f"fewest terms"),)

@@ -192,6 +192,13 @@ def same_up_to_shift(a, b) -> bool:
 # coefficient to 3e-5 of its parts), while a real term that a shift merely shrinks stays
 # well above (the same law's constant: 8e-3).
 CANCEL = 3e-3
+# At least this many terms fewer: a gauge freedom cancels the terms its shift brings in
+# together (Hindmarsh-Rose: two), while in a dense law any amount that zeroes one
+# coefficient saves one term by itself.
+SAVED = 2
+# Laws with more terms than this are not searched (the cost grows with terms times
+# candidate shifts, seconds beyond it; a law that dense is no sparse law to read).
+MAX_TERMS = 30
 
 
 def partial_shift(system):
@@ -206,7 +213,11 @@ def partial_shift(system):
     symbols, n_obs = system.symbols, system.n_observed
     obs = symbols[:n_obs]
     laws = {name: sp.expand(law) for name, law in system.rhs().items()}
+    if not all(law.is_polynomial(*symbols) for law in laws.values()):
+        return None  # Fourier or custom features: no monomials to cancel
     before = _n_terms(laws, symbols)
+    if before > MAX_TERMS:
+        return None
     c = sp.Dummy("c")
     best = None
     for h in symbols[n_obs:]:
@@ -228,7 +239,7 @@ def partial_shift(system):
             for amount in _vanishing_amounts(shifted, symbols, c):
                 kept = _at(shifted, symbols, c, amount)
                 after = _n_terms(kept, symbols)
-                if after < before and (best is None or after < best[4]):
+                if after <= before - SAVED and (best is None or after < best[4]):
                     best = (h, sp.Float(amount) * monomial, kept, before, after)
     return best
 
@@ -246,7 +257,7 @@ def _vanishing_amounts(laws, symbols, c):
     for poly in _coefficients(laws, symbols, c):
         if poly.degree() >= 1:
             out.update(float(r) for r in np.roots([float(a) for a in poly.all_coeffs()])
-                       if abs(np.imag(r)) < 1e-12 and np.real(r) != 0)
+                       if abs(np.imag(r)) <= 1e-6 * max(1.0, abs(r)) and np.real(r) != 0)
     return sorted(out)
 
 
