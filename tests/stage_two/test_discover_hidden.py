@@ -300,6 +300,25 @@ def test_no_law_found_is_a_result_that_says_so():
     assert "no term of the library was kept" in result.doubts[0]
 
 
+def test_a_library_with_fourier_features():
+    """x' = h + 0.8 sin x, h' = -x seen through x with polynomial and Fourier features:
+    the law, term for term (every check on the chosen system takes non-polynomial
+    features; the partial-shift check once raised on them)."""
+    from scipy.integrate import solve_ivp
+
+    t = np.linspace(0.0, 30.0, 1500)
+    sol = solve_ivp(lambda _, s: [s[1] + 0.8 * np.sin(s[0]), -s[0]], (0.0, 30.0), [1.0, 0.0],
+                    t_eval=t, rtol=1e-10, atol=1e-12)
+    library = ps.PolynomialLibrary(degree=1) + ps.FourierLibrary(n_frequencies=1)
+    result = discover_hidden(sol.y[0][:, None], library, t=t, feature_names=["x"],
+                             verbose=False, seed=0)
+    found = {(term.state, str(term.feature)): term.value for term in result.terms}
+    assert set(found) == {("x", "h0"), ("x", "sin(x)"), ("h0", "x")}, found
+    assert found["x", "sin(x)"] == pytest.approx(0.8, rel=1e-3)
+    assert found["h0", "x"] == pytest.approx(-1.0, rel=1e-3)
+    assert not any(d.kind == "partial shift" for d in result.doubts)
+
+
 def test_bad_closure_library():
     data = systems.lotka_volterra(n_times=300)
     with pytest.raises(TypeError, match="closure_library must be a pysindy feature library.*; "
