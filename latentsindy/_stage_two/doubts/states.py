@@ -53,9 +53,7 @@ def observed_function_doubts(system, names_map):
         if expr is None:
             continue
         name = names_map.get(system.state_names[k], system.state_names[k])
-        shown = expr.xreplace({f: sp.Float(f, 4) for f in expr.atoms(sp.Float)}
-                              | {s: sp.Symbol(names_map.get(s.name, s.name), real=True)
-                                 for s in system.symbols})
+        shown = _shown(expr, _user_symbols(system, names_map))
         if other is not None:
             out.append(Doubt("observed function",
                        f"{name} is a function of the other states, {name} = {shown} + "
@@ -83,21 +81,26 @@ def partial_shift_doubts(system, names_map):
     h, shift, laws, before, after = found
     name = names_map.get(h.name, h.name)
     new = sp.Symbol(f"{name}'", real=True)
-    old = {s: sp.Symbol(names_map.get(s.name, s.name), real=True) for s in system.symbols}
+    old = _user_symbols(system, names_map)
     rename = old | {h: new}
-
-    def shown(expr, names):
-        return expr.xreplace({f: sp.Float(f, 4) for f in expr.atoms(sp.Float)}).xreplace(
-            names)
-
-    laws_text = "; ".join(f"d{rename[s]}/dt = {shown(laws[s.name], rename)}"
+    laws_text = "; ".join(f"d{rename[s]}/dt = {_shown(laws[s.name], rename)}"
                           for s in system.symbols)
     return (Doubt("partial shift",
                   f"{name} mixes a hidden variable with an observed one: in {new} = "
-                  f"{shown(h + shift, old)} the same dynamics have {after} terms instead of "
+                  f"{_shown(h + shift, old)} the same dynamics have {after} terms instead of "
                   f"{before} ({laws_text}); the data do not fix the mix, so the extra terms "
                   f"are not determined. Read the shifted form: the same system with the "
                   f"fewest terms"),)
+
+
+def _user_symbols(system, names_map):
+    """The system's symbols -> symbols under the names the result shows."""
+    return {s: sp.Symbol(names_map.get(s.name, s.name), real=True) for s in system.symbols}
+
+
+def _shown(expr, symbols):
+    """``expr`` as a doubt shows it: four significant digits, the result's names."""
+    return expr.xreplace({f: sp.Float(f, 4) for f in expr.atoms(sp.Float)}).xreplace(symbols)
 
 
 def unresolved_rate(system, trajectories, times):

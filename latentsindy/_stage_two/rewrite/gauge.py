@@ -235,41 +235,42 @@ def partial_shift(system):
             if (term == 0 or not monomial.free_symbols or monomial.free_symbols - set(obs)
                     or not monomial.is_polynomial(*obs)):
                 continue
-            shifted = shifted_laws(laws, {h: c * monomial}, obs)
-            for amount in _vanishing_amounts(shifted, symbols, c):
-                kept = _at(shifted, symbols, c, amount)
+            table = _table(shifted_laws(laws, {h: c * monomial}, obs), symbols, c)
+            for amount in _vanishing_amounts(table):
+                kept = _at(table, symbols, amount)
                 after = _n_terms(kept, symbols)
                 if after <= before - SAVED and (best is None or after < best[4]):
                     best = (h, sp.Float(amount) * monomial, kept, before, after)
     return best
 
 
-def _coefficients(laws, symbols, c):
-    """Every coefficient of the laws as a polynomial in ``c``."""
-    for law in laws.values():
-        for coef in sp.Poly(law, *symbols).as_dict().values():
-            yield sp.Poly(coef, c)
+def _table(laws, symbols, c):
+    """Each law's terms as (exponents, coefficients of the polynomial in ``c``, constant
+    first), read once for all the amounts tried."""
+    return {name: [(monomial, [float(a) for a in sp.Poly(coef, c).all_coeffs()[::-1]])
+                   for monomial, coef in sp.Poly(law, *symbols).as_dict().items()]
+            for name, law in laws.items()}
 
 
-def _vanishing_amounts(laws, symbols, c):
+def _vanishing_amounts(table):
     """The real, nonzero amounts of the shift at which a coefficient vanishes."""
     out = set()
-    for poly in _coefficients(laws, symbols, c):
-        if poly.degree() >= 1:
-            out.update(float(r) for r in np.roots([float(a) for a in poly.all_coeffs()])
-                       if abs(np.imag(r)) <= 1e-6 * max(1.0, abs(r)) and np.real(r) != 0)
+    for terms in table.values():
+        for _, parts in terms:
+            if len(parts) >= 2:
+                out.update(float(r) for r in np.roots(parts[::-1])
+                           if abs(np.imag(r)) <= 1e-6 * max(1.0, abs(r)) and np.real(r) != 0)
     return sorted(out)
 
 
-def _at(laws, symbols, c, amount):
+def _at(table, symbols, amount):
     """The laws at ``c = amount``, with the terms that cancel (:data:`CANCEL`) left out."""
     out = {}
-    for name, law in laws.items():
+    for name, terms in table.items():
         kept = sp.Integer(0)
-        for monomial, coef in sp.Poly(law, *symbols).as_dict().items():
-            parts = sp.Poly(coef, c).all_coeffs()[::-1]  # constant first
-            value = sum(float(a) * amount ** k for k, a in enumerate(parts))
-            size = sum(abs(float(a) * amount ** k) for k, a in enumerate(parts))
+        for monomial, parts in terms:
+            value = sum(a * amount ** k for k, a in enumerate(parts))
+            size = sum(abs(a * amount ** k) for k, a in enumerate(parts))
             if size > 0 and abs(value) > CANCEL * size:
                 kept += sp.Float(value) * sp.Mul(*[s ** e for s, e in zip(symbols, monomial,
                                                                            strict=True)])
