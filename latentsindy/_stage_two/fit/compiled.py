@@ -1,0 +1,139 @@
+"""Stage two's Runge-Kutta on polynomial fields, compiled: the whole integration in one call.
+
+The refinement and the term selection integrate thousands of small batches (a few
+segments of a few states with their sensitivities), each of hundreds of Runge-Kutta
+steps. Written in numpy (:func:`.shooting.rk4`), every step is a few dozen array
+operations whose fixed cost (a microsecond or more each) is most of the time: on the
+Hindmarsh-Rose neuron, 1.3 million field evaluations at about 65 microseconds each,
+half of a discovery's work. Here the same steps run as one compiled loop (numba), so
+an evaluation costs its arithmetic.
+
+The arithmetic is :func:`.shooting._rk4_numpy`'s with the field of
+:meth:`.shooting.Integrator._polynomial_field`: the same monomials (powers by repeated
+products, multiplied state by state), the same stages in the same order. Only the
+matrix products are summed in their own order (left to right, skipping the table's
+zeros) where numpy calls the BLAS: the states agree with numpy's to rounding (a test
+holds them to 1e-12 relative), not to the bit.
+
+A state that leaves ``bound`` (or is not finite) at any stage stops the integration:
+the caller raises :class:`.shooting.BlowUp`, as the numpy field does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_ONE_THIRD = 1 / 3
+
+
+def sparse_table(table: np.ndarray):
+    """The nonzero entries of ``table`` (M, C) column by column, rows in increasing
+    order: (starts (C + 1,), rows, values), a compressed-column form."""
+    table = np.asarray(table, dtype=np.float64)
+    mask = table.T != 0
+    starts = np.concatenate([[0], np.cumsum(mask.sum(axis=1))]).astype(np.int64)
+    rows = np.nonzero(mask)[1].astype(np.int64)
+    values = np.ascontiguousarray(table.T[mask])
+    return starts, rows, values
+
+
+@njit(cache=True, nogil=True)
+def _field(y, basis, degree, starts, rows, values, n_value, bound, mono, powers, out, slope):
+    """The slope ``slope`` (n, W, K) at ``y`` (n, W, K): states ``y[:, 0]``, and for
+    W > 1 their sensitivities ``y[:, 1:]``; the segments last, so that every loop runs
+    over them. Returns False where a state is out of bounds (nothing else is then
+    written)."""
+    n, w, k_rows = y.shape
+    for s in range(n):
+        for k in range(k_rows):
+            v = y[s, 0, k]
+            if not (v <= bound and -v <= bound):  # NaN fails both
+                return False
+    for s in range(n):
+        for k in range(k_rows):
+            powers[s, 0, k] = 1.0
+        for d in range(degree):
+            for k in range(k_rows):
+                powers[s, d + 1, k] = powers[s, d, k] * y[s, 0, k]
+    for m in range(basis.shape[0]):
+        for k in range(k_rows):
+            mono[m, k] = powers[0, basis[m, 0], k]
+        for s in range(1, n):
+            e = basis[m, s]
+            for k in range(k_rows):
+                mono[m, k] = mono[m, k] * powers[s, e, k]
+    for c in range(starts.shape[0] - 1):
+        for k in range(k_rows):
+            out[c, k] = 0.0
+        for p in range(starts[c], starts[c + 1]):
+            r, v = rows[p], values[p]
+            for k in range(k_rows):
+                out[c, k] += mono[r, k] * v
+    for i in range(n):
+        for k in range(k_rows):
+            slope[i, 0, k] = out[i, k]
+    jac, extra = n_value, n_value + n * n
+    for i in range(n):
+        for j in range(w - 1):
+            for k in range(k_rows):
+                acc = 0.0
+                for col in range(n):
+                    acc += out[jac + i * n + col, k] * y[col, 1 + j, k]
+                slope[i, 1 + j, k] = acc + out[extra + i * (w - 1) + j, k]
+    return True
+
+
+@njit(cache=True, nogil=True)
+def integrate(z0, steps, basis, degree, starts, rows, values, n_value, bound):
+    """Classical Runge-Kutta (the 3/8 rule) of ``z0`` (n, W, K) over ``steps`` (S, K):
+    the states and their slopes at every grid point, (S + 1, n, W, K) each, and
+    whether every stage stayed within ``bound``."""
+    n, w, k_rows = z0.shape
+    n_steps = steps.shape[0]
+    z = np.empty((n_steps + 1, n, w, k_rows))
+    dz = np.empty_like(z)
+    z[0] = z0
+    t = np.empty_like(z0)
+    k2 = np.empty_like(z0)
+    k3 = np.empty_like(z0)
+    k4 = np.empty_like(z0)
+    mono = np.empty((basis.shape[0], k_rows))
+    powers = np.empty((n, degree + 1, k_rows))
+    out = np.empty((starts.shape[0] - 1, k_rows))
+    for i in range(n_steps):
+        y, k1, dt = z[i], dz[i], steps[i]
+        if not _field(y, basis, degree, starts, rows, values, n_value, bound, mono,
+                      powers, out, k1):
+            return z, dz, False
+        for s in range(n):
+            for j in range(w):
+                for k in range(k_rows):
+                    t[s, j, k] = k1[s, j, k] * dt[k] * _ONE_THIRD + y[s, j, k]
+        if not _field(t, basis, degree, starts, rows, values, n_value, bound, mono,
+                      powers, out, k2):
+            return z, dz, False
+        for s in range(n):
+            for j in range(w):
+                for k in range(k_rows):
+                    t[s, j, k] = (k2[s, j, k] - k1[s, j, k] * _ONE_THIRD) * dt[k] + y[s, j, k]
+        if not _field(t, basis, degree, starts, rows, values, n_value, bound, mono,
+                      powers, out, k3):
+            return z, dz, False
+        for s in range(n):
+            for j in range(w):
+                for k in range(k_rows):
+                    t[s, j, k] = (k1[s, j, k] - k2[s, j, k] + k3[s, j, k]) * dt[k] + y[s, j, k]
+        if not _field(t, basis, degree, starts, rows, values, n_value, bound, mono,
+                      powers, out, k4):
+            return z, dz, False
+        after = z[i + 1]
+        for s in range(n):
+            for j in range(w):
+                for k in range(k_rows):
+                    b = (k2[s, j, k] + k3[s, j, k]) * 3.0 + k1[s, j, k] + k4[s, j, k]
+                    after[s, j, k] = b * dt[k] * 0.125 + y[s, j, k]
+    if not _field(z[n_steps], basis, degree, starts, rows, values, n_value, bound, mono,
+                  powers, out, dz[n_steps]):
+        return z, dz, False
+    return z, dz, True
