@@ -7,9 +7,17 @@ import pytest
 import sympy as sp
 import torch
 
+from latentsindy._stage_two.fit import compiled
 from latentsindy._stage_two.fit.compiled import sparse_table
 from latentsindy._stage_two.fit.field import ParametricSystem
-from latentsindy._stage_two.fit.shooting import BlowUp, Integrator, make_groups, rk4
+from latentsindy._stage_two.fit.shooting import (
+    BlowUp,
+    Integrator,
+    _hermite,
+    _hermite_table,
+    make_groups,
+    rk4,
+)
 
 X, Y, Z = sp.symbols("x y z", real=True)
 FEATURES = (sp.Integer(1), X, Y, Z, X * Y, X * Z, Y**2, Z**3)
@@ -47,10 +55,11 @@ def test_compiled_steps_equal_the_numpy_formula_to_rounding(sensitivities):
         z0 = np.concatenate([starts[..., None], np.broadcast_to(np.eye(n), (k, n, n)),
                              np.zeros((k, n, len(integrator.rows)))], -1)
         reference = rk4(integrator._field(COEF), z0, group.grid)
-        got = integrator._compiled(COEF, z0, group, True)
+        got = [np.moveaxis(a, 3, 1) for a in integrator._compiled(COEF, z0, group, True)]
     else:
         reference = rk4(integrator._plain(COEF), starts, group.grid)
-        got = integrator._compiled(COEF, starts, group, False)
+        got = [a[:, :, 0].transpose(0, 2, 1) for a in
+               integrator._compiled(COEF, starts, group, False)]
     for a, b in zip(got, reference, strict=True):
         assert a.shape == b.shape
         scale = np.abs(b).max()
@@ -69,7 +78,7 @@ def test_a_batch_of_segments_on_their_own_steps_matches_them_one_by_one():
 
     batch = Rows()
     batch.grid, batch.steps = grid, {}
-    z, _ = integrator._compiled(COEF, starts[:2], batch, False)
+    z = integrator._compiled(COEF, starts[:2], batch, False)[0][:, :, 0].transpose(0, 2, 1)
     alone, _ = rk4(integrator._plain(COEF), starts[1:2], torch.linspace(0.0, 0.1, 11,
                                                                         dtype=torch.float64))
     np.testing.assert_allclose(z[10, 1], alone[-1, 0], rtol=1e-14)
@@ -84,3 +93,22 @@ def test_a_state_out_of_bounds_is_a_blow_up(start):
         integrator.run(COEF, starts, group)
     with pytest.raises(BlowUp):
         integrator.run(COEF * 50.0, starts[[0]], group, sensitivities=False)
+
+
+@pytest.mark.parametrize("components", [None, 1])
+def test_the_compiled_interpolation_is_numpys_bit_for_bit(components):
+    """Irregular samples: the compiled Hermite interpolation makes numpy's products
+    and sums in numpy's order, so equal to the bit, sensitivities and all."""
+    integrator, _, starts = _problem()
+    t = np.sort(np.random.default_rng(5).uniform(0.0, 2.0, 150))
+    group = make_groups([t], [np.zeros((150, 1))], 0.25, 0.01)[0]
+    starts = starts[:group.n_segments]
+    k, n = starts.shape
+    z0 = np.concatenate([starts[..., None], np.broadcast_to(np.eye(n), (k, n, n)),
+                         np.zeros((k, n, len(integrator.rows)))], -1)
+    z, dz = integrator._compiled(COEF, z0, group, True)
+    c = n if components is None else components
+    rows, _, *weights = _hermite_table(group, "numpy")
+    got = compiled.hermite(z, dz, rows, *weights, c).reshape(k, -1, c, z.shape[2])
+    zk, dzk = (np.moveaxis(a, 3, 0)[:, :, :c] for a in (z, dz))
+    assert np.array_equal(got, _hermite(zk, dzk, group))

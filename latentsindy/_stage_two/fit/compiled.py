@@ -137,3 +137,22 @@ def integrate(z0, steps, basis, degree, starts, rows, values, n_value, bound):
                   powers, out, dz[n_steps]):
         return z, dz, False
     return z, dz, True
+
+
+@njit(cache=True, nogil=True)
+def hermite(z, dz, rows, w00, w10, w01, w11, components):
+    """Cubic Hermite interpolation of the grid values ``z`` and slopes ``dz`` (G, n,
+    W, K) (:func:`integrate`'s) of the first ``components`` states: (P, components, W)
+    at the P samples whose left grid point is ``rows`` (segment times G plus grid
+    index), weights as :func:`.shooting._hermite_table` makes them, summed in
+    :func:`.shooting._hermite`'s order."""
+    g, _, w, _ = z.shape
+    out = np.empty((rows.shape[0], components, w))
+    for p in range(rows.shape[0]):
+        k, j = rows[p] // g, rows[p] % g
+        a, b, c, d = w00[p], w10[p], w01[p], w11[p]
+        for s in range(components):
+            for i in range(w):
+                out[p, s, i] = (z[j, s, i, k] * a + dz[j, s, i, k] * b
+                                + z[j + 1, s, i, k] * c + dz[j + 1, s, i, k] * d)
+    return out

@@ -143,8 +143,10 @@ class Integrator:
         return func
 
     def _compiled(self, coef, start, group, sensitivities):
-        """:func:`rk4` of the polynomial field (with its sensitivities, or of the states
-        ``start`` (K, n) alone) as one compiled loop: (G, K, ...) states and slopes."""
+        """:func:`rk4` of the polynomial field (with its sensitivities from ``start``
+        (K, n, W), or of the states ``start`` (K, n) alone) as one compiled loop: the
+        states and slopes (G, n, W, K), the segments last (W = 1 without
+        sensitivities)."""
         steps = group.steps.get("compiled") if isinstance(group, Batch) else None
         if steps is None:
             steps = np.diff(np.asarray(group.grid.tolist()), axis=-1)
@@ -152,7 +154,7 @@ class Integrator:
                 steps[:, None] if steps.ndim == 1 else steps.T, (len(steps.T), len(start))))
             if isinstance(group, Batch):
                 group.steps["compiled"] = steps
-        if sensitivities:  # the segments last: (n, W, K)
+        if sensitivities:
             table, z0 = self._polynomial_table(coef), np.transpose(start, (1, 2, 0))
         else:
             table, z0 = self.features.tables(coef)[0] @ coef.T, start.T[:, None]
@@ -162,8 +164,27 @@ class Integrator:
             *compiled.sparse_table(table), n, float(self.bound))
         if not inside:
             raise BlowUp()
-        z, dz = np.moveaxis(z, 3, 1), np.moveaxis(dz, 3, 1)  # (G, K, n, W)
-        return (z, dz) if sensitivities else (z[..., 0], dz[..., 0])
+        return z, dz
+
+    def _run_compiled(self, coef, y0, group, sensitivities, components):
+        """:meth:`run`'s values and ends (numpy arrays) by :meth:`_compiled`, the
+        interpolation compiled too (the same products and sums as :func:`_hermite`)."""
+        n, k = y0.shape[1], y0.shape[0]
+        start = y0
+        if sensitivities:
+            start = _cat([y0[..., None], np.broadcast_to(np.eye(n), (k, n, n)),
+                          np.zeros((k, n, len(self.rows)))], -1)
+        z, dz = self._compiled(coef, start, group, sensitivities)
+        if "numpy" not in group.hermite:
+            group.hermite["numpy"] = _hermite_table(group, "numpy")
+        rows, _, *weights = group.hermite["numpy"]
+        values = compiled.hermite(z, dz, rows, *weights,
+                                  n if components is None else components)
+        values = values.reshape(k, group.positions.shape[1], *values.shape[1:])
+        ends = np.ascontiguousarray(np.transpose(z[-1], (2, 0, 1)))
+        if not sensitivities:
+            values, ends = values[..., 0], ends[..., 0]
+        return values, ends
 
     def _polynomial_field(self, coef):
         """The field, its Jacobian and its derivatives by the free coefficients from one
@@ -239,36 +260,24 @@ class Integrator:
             y0 = torch.as_tensor(starts, **like)
             grid = group.grid
         n, k = y0.shape[-1], y0.shape[0]
-        if self.in_numpy:
-            func = None
-            if sensitivities:
-                eye, rest = np.broadcast_to(np.eye(n), (k, n, n)), np.zeros((k, n, len(self.rows)))
-                z0 = _cat([y0[..., None], eye, rest], -1)
-        elif sensitivities:
-            eye = torch.eye(n, **like).expand(k, n, n)
-            rest = torch.zeros(k, n, len(self.rows), **like)
-            z0 = _cat([y0[..., None], eye, rest], -1)
-            func = self._field(coef)
+        if self.in_numpy:  # compiled.py: the same steps and interpolation, one call each
+            values, ends = self._run_compiled(coef, y0, group, sensitivities, components)
+            values, ends = torch.from_numpy(values), torch.from_numpy(ends)
         else:
-            z0, func = y0, self._plain(coef)
-        # overflowing sensitivities become inf silently, as in torch (the states
-        # themselves are bounded: BlowUp)
-        with np.errstate(over="ignore", invalid="ignore"):
-            if self.in_numpy:  # the same steps, compiled (compiled.py)
-                z, dz = self._compiled(coef, z0 if sensitivities else y0, group,
-                                       sensitivities)
+            if sensitivities:
+                eye = torch.eye(n, **like).expand(k, n, n)
+                rest = torch.zeros(k, n, len(self.rows), **like)
+                z0 = _cat([y0[..., None], eye, rest], -1)
+                func = self._field(coef)
             else:
-                z, dz = rk4(func, z0, grid, getattr(group, "steps", None))  # (G, K, ...)
+                z0, func = y0, self._plain(coef)
+            z, dz = rk4(func, z0, grid, getattr(group, "steps", None))  # (G, K, ...)
             z, dz = z.swapaxes(0, 1), dz.swapaxes(0, 1)  # (K, G, ...)
             ends = z[:, -1]
-            # the caller's algebra (normal equations, residuals) is on the CPU, in torch
             if components is not None:  # the same arithmetic on fewer states
                 z, dz = z[:, :, :components], dz[:, :, :components]
-            values = _hermite(z, dz, group)
-        if self.in_numpy:
-            values, ends = torch.from_numpy(values), torch.from_numpy(np.ascontiguousarray(ends))
-        else:
-            values, ends = values.cpu(), ends.cpu()
+            # the caller's algebra (normal equations, residuals) is on the CPU, in torch
+            values, ends = _hermite(z, dz, group).cpu(), ends.cpu()
         if sensitivities:
             return (values[..., 0], values[..., 1:]), (ends[..., 0], ends[..., 1:])
         return values, ends
