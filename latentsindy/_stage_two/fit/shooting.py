@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from . import compiled
 from .field import FeatureMap, ParametricSystem
 
 
@@ -147,6 +146,8 @@ class Integrator:
         (K, n, W), or of the states ``start`` (K, n) alone) as one compiled loop: the
         states and slopes (G, n, W, K), the segments last (W = 1 without
         sensitivities)."""
+        from . import compiled  # numba: imported at the first integration, not with the package
+
         steps = group.steps.get("compiled") if isinstance(group, Batch) else None
         if steps is None:
             steps = np.diff(np.asarray(group.grid.tolist()), axis=-1)
@@ -169,6 +170,8 @@ class Integrator:
     def _run_compiled(self, coef, y0, group, sensitivities, components):
         """:meth:`run`'s values and ends (numpy arrays) by :meth:`_compiled`, the
         interpolation compiled too (the same products and sums as :func:`_hermite`)."""
+        from . import compiled
+
         n, k = y0.shape[1], y0.shape[0]
         start = y0
         if sensitivities:
