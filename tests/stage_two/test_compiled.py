@@ -11,6 +11,7 @@ from latentsindy._stage_two.fit import compiled
 from latentsindy._stage_two.fit.compiled import sparse_table
 from latentsindy._stage_two.fit.field import ParametricSystem
 from latentsindy._stage_two.fit.shooting import (
+    Batch,
     BlowUp,
     Integrator,
     _hermite,
@@ -55,11 +56,11 @@ def test_compiled_steps_equal_the_numpy_formula_to_rounding(sensitivities):
         z0 = np.concatenate([starts[..., None], np.broadcast_to(np.eye(n), (k, n, n)),
                              np.zeros((k, n, len(integrator.rows)))], -1)
         reference = rk4(integrator._field(COEF), z0, group.grid)
-        got = [np.moveaxis(a, 3, 1) for a in integrator._compiled(COEF, z0, group, True)]
+        got = [np.moveaxis(a, 3, 1) for a in compiled.states(integrator, COEF, z0, group, True)]
     else:
         reference = rk4(integrator._plain(COEF), starts, group.grid)
         got = [a[:, :, 0].transpose(0, 2, 1) for a in
-               integrator._compiled(COEF, starts, group, False)]
+               compiled.states(integrator, COEF, starts, group, False)]
     for a, b in zip(got, reference, strict=True):
         assert a.shape == b.shape
         scale = np.abs(b).max()
@@ -72,17 +73,13 @@ def test_a_batch_of_segments_on_their_own_steps_matches_them_one_by_one():
     integrator, group, starts = _problem()
     short = np.concatenate([np.linspace(0.0, 0.1, 11), np.full(10, 0.1)])
     grid = torch.as_tensor(np.stack([np.linspace(0.0, 0.2, 21), short]))
-
-    class Rows:  # the two fields _compiled reads of a Batch
-        pass
-
-    batch = Rows()
-    batch.grid, batch.steps = grid, {}
-    z = integrator._compiled(COEF, starts[:2], batch, False)[0][:, :, 0].transpose(0, 2, 1)
+    batch = Batch([], grid, torch.zeros(2, 1), np.array([21, 11]))
+    z = compiled.states(integrator, COEF, starts[:2], batch, False)[0][:, :, 0].transpose(0, 2, 1)
     alone, _ = rk4(integrator._plain(COEF), starts[1:2], torch.linspace(0.0, 0.1, 11,
                                                                         dtype=torch.float64))
     np.testing.assert_allclose(z[10, 1], alone[-1, 0], rtol=1e-14)
     assert np.array_equal(z[10, 1], z[-1, 1])
+    assert batch.steps["compiled"].shape == (20, 2)  # made once, kept with the batch
 
 
 @pytest.mark.parametrize("start", [np.nan, 2e6])
@@ -106,7 +103,7 @@ def test_the_compiled_interpolation_is_numpys_bit_for_bit(components):
     k, n = starts.shape
     z0 = np.concatenate([starts[..., None], np.broadcast_to(np.eye(n), (k, n, n)),
                          np.zeros((k, n, len(integrator.rows)))], -1)
-    z, dz = integrator._compiled(COEF, z0, group, True)
+    z, dz = compiled.states(integrator, COEF, z0, group, True)
     c = n if components is None else components
     rows, _, *weights = _hermite_table(group, "numpy")
     got = compiled.hermite(z, dz, rows, *weights, c).reshape(k, -1, c, z.shape[2])

@@ -8,7 +8,7 @@ Hindmarsh-Rose neuron, 1.3 million field evaluations at about 65 microseconds ea
 half of a discovery's work. Here the same steps run as one compiled loop (numba), so
 an evaluation costs its arithmetic.
 
-The arithmetic is :func:`.shooting._rk4_numpy`'s with the field of
+The arithmetic is :func:`.shooting.rk4`'s (in numpy, its reference here) with the field of
 :meth:`.shooting.Integrator._polynomial_field`: the same monomials (powers by repeated
 products, multiplied state by state), the same stages in the same order. Only the
 matrix products are summed in their own order (left to right, skipping the table's
@@ -24,7 +24,55 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .shooting import Batch, BlowUp, _hermite_table
+
 _ONE_THIRD = 1 / 3
+
+
+def run(integrator, coef, y0, group, sensitivities, components):
+    """:meth:`.shooting.Integrator.run`'s values and segment ends (numpy arrays) for a
+    polynomial field on the CPU: :func:`states`, then the compiled interpolation (the
+    same products and sums as :func:`.shooting._hermite`)."""
+    n, k = y0.shape[1], y0.shape[0]
+    start = y0
+    if sensitivities:
+        start = np.concatenate([y0[..., None], np.broadcast_to(np.eye(n), (k, n, n)),
+                                np.zeros((k, n, len(integrator.rows)))], -1)
+    z, dz = states(integrator, coef, start, group, sensitivities)
+    if "numpy" not in group.hermite:
+        group.hermite["numpy"] = _hermite_table(group, "numpy")
+    rows, _, *weights = group.hermite["numpy"]
+    values = hermite(z, dz, rows, *weights, n if components is None else components)
+    values = values.reshape(k, group.positions.shape[1], *values.shape[1:])
+    ends = np.ascontiguousarray(np.transpose(z[-1], (2, 0, 1)))
+    if not sensitivities:
+        values, ends = values[..., 0], ends[..., 0]
+    return values, ends
+
+
+def states(integrator, coef, start, group, sensitivities):
+    """:func:`.shooting.rk4` of ``integrator``'s polynomial field (with its
+    sensitivities from ``start`` (K, n, W), or of the states ``start`` (K, n) alone)
+    as one compiled loop: the states and slopes (G, n, W, K), the segments last (W = 1
+    without sensitivities). Raises :class:`.shooting.BlowUp` where a state leaves the
+    integrator's bound."""
+    steps = group.steps.get("compiled") if isinstance(group, Batch) else None
+    if steps is None:
+        steps = np.diff(np.asarray(group.grid.tolist()), axis=-1)
+        steps = np.ascontiguousarray(np.broadcast_to(
+            steps[:, None] if steps.ndim == 1 else steps.T, (len(steps.T), len(start))))
+        if isinstance(group, Batch):
+            group.steps["compiled"] = steps
+    if sensitivities:
+        table, z0 = integrator._polynomial_table(coef), np.transpose(start, (1, 2, 0))
+    else:
+        table, z0 = integrator.features.tables(coef)[0] @ coef.T, start.T[:, None]
+    fm, n = integrator.features, start.shape[1]
+    z, dz, inside = integrate(np.ascontiguousarray(z0), steps, fm.basis, fm.degree,
+                              *sparse_table(table), n, float(integrator.bound))
+    if not inside:
+        raise BlowUp()
+    return z, dz
 
 
 def sparse_table(table: np.ndarray):

@@ -141,54 +141,6 @@ class Integrator:
 
         return func
 
-    def _compiled(self, coef, start, group, sensitivities):
-        """:func:`rk4` of the polynomial field (with its sensitivities from ``start``
-        (K, n, W), or of the states ``start`` (K, n) alone) as one compiled loop: the
-        states and slopes (G, n, W, K), the segments last (W = 1 without
-        sensitivities)."""
-        from . import compiled  # numba: imported at the first integration, not with the package
-
-        steps = group.steps.get("compiled") if isinstance(group, Batch) else None
-        if steps is None:
-            steps = np.diff(np.asarray(group.grid.tolist()), axis=-1)
-            steps = np.ascontiguousarray(np.broadcast_to(
-                steps[:, None] if steps.ndim == 1 else steps.T, (len(steps.T), len(start))))
-            if isinstance(group, Batch):
-                group.steps["compiled"] = steps
-        if sensitivities:
-            table, z0 = self._polynomial_table(coef), np.transpose(start, (1, 2, 0))
-        else:
-            table, z0 = self.features.tables(coef)[0] @ coef.T, start.T[:, None]
-        fm, n = self.features, start.shape[1]
-        z, dz, inside = compiled.integrate(
-            np.ascontiguousarray(z0), steps, fm.basis, fm.degree,
-            *compiled.sparse_table(table), n, float(self.bound))
-        if not inside:
-            raise BlowUp()
-        return z, dz
-
-    def _run_compiled(self, coef, y0, group, sensitivities, components):
-        """:meth:`run`'s values and ends (numpy arrays) by :meth:`_compiled`, the
-        interpolation compiled too (the same products and sums as :func:`_hermite`)."""
-        from . import compiled
-
-        n, k = y0.shape[1], y0.shape[0]
-        start = y0
-        if sensitivities:
-            start = _cat([y0[..., None], np.broadcast_to(np.eye(n), (k, n, n)),
-                          np.zeros((k, n, len(self.rows)))], -1)
-        z, dz = self._compiled(coef, start, group, sensitivities)
-        if "numpy" not in group.hermite:
-            group.hermite["numpy"] = _hermite_table(group, "numpy")
-        rows, _, *weights = group.hermite["numpy"]
-        values = compiled.hermite(z, dz, rows, *weights,
-                                  n if components is None else components)
-        values = values.reshape(k, group.positions.shape[1], *values.shape[1:])
-        ends = np.ascontiguousarray(np.transpose(z[-1], (2, 0, 1)))
-        if not sensitivities:
-            values, ends = values[..., 0], ends[..., 0]
-        return values, ends
-
     def _polynomial_field(self, coef):
         """The field, its Jacobian and its derivatives by the free coefficients from one
         product of the monomials with a table made for ``coef``: the sensitivity
@@ -264,7 +216,9 @@ class Integrator:
             grid = group.grid
         n, k = y0.shape[-1], y0.shape[0]
         if self.in_numpy:  # compiled.py: the same steps and interpolation, one call each
-            values, ends = self._run_compiled(coef, y0, group, sensitivities, components)
+            from . import compiled  # numba: imported at the first integration, not with the package
+
+            values, ends = compiled.run(self, coef, y0, group, sensitivities, components)
             values, ends = torch.from_numpy(values), torch.from_numpy(ends)
         else:
             if sensitivities:
