@@ -74,7 +74,8 @@ def test_a_batch_of_segments_on_their_own_steps_matches_them_one_by_one():
     short = np.concatenate([np.linspace(0.0, 0.1, 11), np.full(10, 0.1)])
     grid = torch.as_tensor(np.stack([np.linspace(0.0, 0.2, 21), short]))
     batch = Batch([], grid, torch.zeros(2, 1), np.array([21, 11]))
-    z = compiled.states(integrator, COEF, starts[:2], batch, False)[0][:, :, 0].transpose(0, 2, 1)
+    z = compiled.states(integrator, COEF, starts[:2], batch, False, batch.steps)[0]
+    z = z[:, :, 0].transpose(0, 2, 1)
     alone, _ = rk4(integrator._plain(COEF), starts[1:2], torch.linspace(0.0, 0.1, 11,
                                                                         dtype=torch.float64))
     np.testing.assert_allclose(z[10, 1], alone[-1, 0], rtol=1e-14)

@@ -24,12 +24,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .shooting import Batch, BlowUp, _hermite_table
-
 _ONE_THIRD = 1 / 3
 
 
-def run(integrator, coef, y0, group, sensitivities, components):
+def run(integrator, coef, y0, group, sensitivities, components, hermite_table, cache):
     """:meth:`.shooting.Integrator.run`'s values and segment ends (numpy arrays) for a
     polynomial field on the CPU: :func:`states`, then the compiled interpolation (the
     same products and sums as :func:`.shooting._hermite`)."""
@@ -38,10 +36,8 @@ def run(integrator, coef, y0, group, sensitivities, components):
     if sensitivities:
         start = np.concatenate([y0[..., None], np.broadcast_to(np.eye(n), (k, n, n)),
                                 np.zeros((k, n, len(integrator.rows)))], -1)
-    z, dz = states(integrator, coef, start, group, sensitivities)
-    if "numpy" not in group.hermite:
-        group.hermite["numpy"] = _hermite_table(group, "numpy")
-    rows, _, *weights = group.hermite["numpy"]
+    z, dz = states(integrator, coef, start, group, sensitivities, cache)
+    rows, _, *weights = hermite_table
     values = hermite(z, dz, rows, *weights, n if components is None else components)
     values = values.reshape(k, group.positions.shape[1], *values.shape[1:])
     ends = np.ascontiguousarray(np.transpose(z[-1], (2, 0, 1)))
@@ -50,19 +46,19 @@ def run(integrator, coef, y0, group, sensitivities, components):
     return values, ends
 
 
-def states(integrator, coef, start, group, sensitivities):
+def states(integrator, coef, start, group, sensitivities, cache=None):
     """:func:`.shooting.rk4` of ``integrator``'s polynomial field (with its
     sensitivities from ``start`` (K, n, W), or of the states ``start`` (K, n) alone)
     as one compiled loop: the states and slopes (G, n, W, K), the segments last (W = 1
-    without sensitivities). Raises :class:`.shooting.BlowUp` where a state leaves the
-    integrator's bound."""
-    steps = group.steps.get("compiled") if isinstance(group, Batch) else None
+    without sensitivities; ``cache``: a dict that keeps the steps, or None). Raises
+    :class:`.shooting.BlowUp` where a state leaves the integrator's bound."""
+    steps = None if cache is None else cache.get("compiled")
     if steps is None:
         steps = np.diff(np.asarray(group.grid.tolist()), axis=-1)
         steps = np.ascontiguousarray(np.broadcast_to(
             steps[:, None] if steps.ndim == 1 else steps.T, (len(steps.T), len(start))))
-        if isinstance(group, Batch):
-            group.steps["compiled"] = steps
+        if cache is not None:
+            cache["compiled"] = steps
     if sensitivities:
         table, z0 = integrator._polynomial_table(coef), np.transpose(start, (1, 2, 0))
     else:
@@ -71,7 +67,7 @@ def states(integrator, coef, start, group, sensitivities):
     z, dz, inside = integrate(np.ascontiguousarray(z0), steps, fm.basis, fm.degree,
                               *sparse_table(table), n, float(integrator.bound))
     if not inside:
-        raise BlowUp()
+        raise integrator.blow_up()
     return z, dz
 
 

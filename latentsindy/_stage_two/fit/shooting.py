@@ -141,6 +141,8 @@ class Integrator:
 
         return func
 
+    blow_up = BlowUp  # what the compiled path raises (compiled.py does not import this module)
+
     def _polynomial_field(self, coef):
         """The field, its Jacobian and its derivatives by the free coefficients from one
         product of the monomials with a table made for ``coef``: the sensitivity
@@ -218,7 +220,11 @@ class Integrator:
         if self.in_numpy:  # compiled.py: the same steps and interpolation, one call each
             from . import compiled  # numba: imported at the first integration, not with the package
 
-            values, ends = compiled.run(self, coef, y0, group, sensitivities, components)
+            if "numpy" not in group.hermite:
+                group.hermite["numpy"] = _hermite_table(group, "numpy")
+            values, ends = compiled.run(self, coef, y0, group, sensitivities, components,
+                                        group.hermite["numpy"],
+                                        group.steps if isinstance(group, Batch) else None)
             values, ends = torch.from_numpy(values), torch.from_numpy(ends)
         else:
             if sensitivities:
