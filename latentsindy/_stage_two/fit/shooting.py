@@ -141,8 +141,6 @@ class Integrator:
 
         return func
 
-    blow_up = BlowUp  # what the compiled path raises (compiled.py does not import this module)
-
     def _polynomial_field(self, coef):
         """The field, its Jacobian and its derivatives by the free coefficients from one
         product of the monomials with a table made for ``coef``: the sensitivity
@@ -207,26 +205,24 @@ class Integrator:
         ``components``, only the first ``components`` states (the observed ones, say)
         are interpolated to the sample times; the ends hold every state.
         """
-        if self.in_numpy:
-            coef = np.asarray(coef, dtype=np.float64)
-            y0 = np.asarray(starts, dtype=np.float64)
-            grid = group.grid.numpy()
-        else:
-            like = dict(dtype=torch.float64, device=self.device)
-            coef = torch.as_tensor(coef, **like)
-            y0 = torch.as_tensor(starts, **like)
-            grid = group.grid
-        n, k = y0.shape[-1], y0.shape[0]
         if self.in_numpy:  # compiled.py: the same steps and interpolation, one call each
             from . import compiled  # numba: imported at the first integration, not with the package
 
             if "numpy" not in group.hermite:
                 group.hermite["numpy"] = _hermite_table(group, "numpy")
-            values, ends = compiled.run(self, coef, y0, group, sensitivities, components,
-                                        group.hermite["numpy"],
-                                        group.steps if isinstance(group, Batch) else None)
-            values, ends = torch.from_numpy(values), torch.from_numpy(ends)
+            out = compiled.run(self, np.asarray(coef, dtype=np.float64),
+                               np.asarray(starts, dtype=np.float64), group, sensitivities,
+                               components, group.hermite["numpy"],
+                               group.steps if isinstance(group, Batch) else None)
+            if out is None:  # a state left the bound
+                raise BlowUp()
+            values, ends = (torch.from_numpy(a) for a in out)
         else:
+            like = dict(dtype=torch.float64, device=self.device)
+            coef = torch.as_tensor(coef, **like)
+            y0 = torch.as_tensor(starts, **like)
+            grid = group.grid
+            n, k = y0.shape[-1], y0.shape[0]
             if sensitivities:
                 eye = torch.eye(n, **like).expand(k, n, n)
                 rest = torch.zeros(k, n, len(self.rows), **like)
