@@ -111,3 +111,35 @@ def test_the_compiled_interpolation_is_numpys_bit_for_bit(components):
     got = compiled.hermite(z, dz, rows, *weights, c).reshape(k, -1, c, z.shape[2])
     zk, dzk = (np.moveaxis(a, 3, 0)[:, :, :c] for a in (z, dz))
     assert np.array_equal(got, _hermite(zk, dzk, group))
+
+
+def _tensors(part):
+    """A run's values or ends: a tensor, or with sensitivities a pair of them."""
+    return [part] if isinstance(part, torch.Tensor) else list(part)
+
+
+@pytest.mark.parametrize("sensitivities", [True, False])
+@pytest.mark.parametrize("samples", [200, 20])
+def test_a_run_owns_its_results_though_the_trajectories_reuse_one_workspace(
+        sensitivities, samples):
+    """``Integrator.run`` integrates into a buffer kept between calls: its values and
+    ends are its own (a later run from other starts leaves them as they were; one
+    segment alone, whose ends are a contiguous slice of the buffer, included) and
+    equal the trajectories written into new arrays, bit for bit."""
+    integrator, _, starts = _problem()
+    t = np.linspace(0.0, 2.0, 200)[:samples]
+    group = make_groups([t], [np.zeros((samples, 1))], 0.25, 0.01)[0]
+    starts = starts[:group.n_segments]
+    kept = integrator.run(COEF, starts, group, sensitivities)
+    first = [x.clone() for part in kept for x in _tensors(part)]
+    integrator.run(COEF, starts * 0.9, group, sensitivities)  # the same workspace
+    for a, b in zip(first, [x for part in kept for x in _tensors(part)], strict=True):
+        assert torch.equal(a, b)
+    k, n = starts.shape
+    z0 = (np.concatenate([starts[:, :, None], np.broadcast_to(np.eye(n), (k, n, n)),
+                          np.zeros((k, n, len(integrator.rows)))], -1)
+          if sensitivities else starts)
+    fresh = compiled.states(integrator, COEF, z0, group, sensitivities)
+    reused = compiled.states(integrator, COEF, z0, group, sensitivities, reuse=True)
+    assert fresh[2] and reused[2]
+    assert np.array_equal(fresh[0], reused[0]) and np.array_equal(fresh[1], reused[1])
