@@ -28,7 +28,7 @@ from numba import njit
 
 _ONE_THIRD = 1 / 3
 # the trajectories are written into a buffer kept from call to call (per thread), up to
-# this many values each (64 MiB): memory the process has touched before. A fresh array of
+# this many values each (64 MiB an array): memory the process has touched before. A fresh array of
 # a few megabytes is new pages, and filling them (page faults, zeroing) cost more than
 # the integration itself: on the Hindmarsh-Rose neuron's batches (4 states, 25 columns,
 # 111 segments, 136 steps: 12 MB each) 2 of 3 seconds on 120 calls
@@ -93,8 +93,9 @@ def _outputs(shape, reuse):
     if not reuse or size > WORKSPACE_LIMIT:
         return np.empty(shape), np.empty(shape)
     held = getattr(_workspace, "buffer", None)
-    if held is None or held.shape[1] < size:
-        held = _workspace.buffer = np.empty((2, size))
+    if held is None or held.shape[1] < size:  # grown by half at least: few regrowths
+        grown = 0 if held is None else held.shape[1] + held.shape[1] // 2
+        held = _workspace.buffer = np.empty((2, min(max(size, grown), WORKSPACE_LIMIT)))
     return held[0, :size].reshape(shape), held[1, :size].reshape(shape)
 
 
