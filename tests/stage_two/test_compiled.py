@@ -51,10 +51,8 @@ def test_compiled_steps_equal_the_numpy_formula_to_rounding(sensitivities):
     on a Lorenz-like field with a cubic term, 0.25 time units a segment)."""
     integrator, group, starts = _problem()
     assert integrator.in_numpy
-    k, n = starts.shape
     if sensitivities:
-        z0 = np.concatenate([starts[..., None], np.broadcast_to(np.eye(n), (k, n, n)),
-                             np.zeros((k, n, len(integrator.rows)))], -1)
+        z0 = compiled.with_sensitivities(integrator, starts)
         reference = rk4(integrator._field(COEF), z0, group.grid)
         got = [np.moveaxis(a, 3, 1)
                for a in compiled.states(integrator, COEF, z0, group, True)[:2]]
@@ -103,8 +101,7 @@ def test_the_compiled_interpolation_is_numpys_bit_for_bit(components):
     group = make_groups([t], [np.zeros((150, 1))], 0.25, 0.01)[0]
     starts = starts[:group.n_segments]
     k, n = starts.shape
-    z0 = np.concatenate([starts[..., None], np.broadcast_to(np.eye(n), (k, n, n)),
-                         np.zeros((k, n, len(integrator.rows)))], -1)
+    z0 = compiled.with_sensitivities(integrator, starts)
     z, dz, _ = compiled.states(integrator, COEF, z0, group, True)
     c = n if components is None else components
     rows, _, *weights = _hermite_table(group, "numpy")
@@ -135,10 +132,7 @@ def test_a_run_owns_its_results_though_the_trajectories_reuse_one_workspace(
     integrator.run(COEF, starts * 0.9, group, sensitivities)  # the same workspace
     for a, b in zip(first, [x for part in kept for x in _tensors(part)], strict=True):
         assert torch.equal(a, b)
-    k, n = starts.shape
-    z0 = (np.concatenate([starts[:, :, None], np.broadcast_to(np.eye(n), (k, n, n)),
-                          np.zeros((k, n, len(integrator.rows)))], -1)
-          if sensitivities else starts)
+    z0 = compiled.with_sensitivities(integrator, starts) if sensitivities else starts
     fresh = compiled.states(integrator, COEF, z0, group, sensitivities)
     reused = compiled.states(integrator, COEF, z0, group, sensitivities, reuse=True)
     assert fresh[2] and reused[2]

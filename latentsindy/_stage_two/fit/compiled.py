@@ -28,10 +28,10 @@ from numba import njit
 
 _ONE_THIRD = 1 / 3
 # the trajectories are written into a buffer kept from call to call (per thread), up to
-# this many values each (64 MiB an array): memory the process has touched before. A fresh array of
-# a few megabytes is new pages, and filling them (page faults, zeroing) cost more than
-# the integration itself: on the Hindmarsh-Rose neuron's batches (4 states, 25 columns,
-# 111 segments, 136 steps: 12 MB each) 2 of 3 seconds on 120 calls
+# this many values an array (64 MiB): memory the process has touched before. A fresh
+# array of a few megabytes is new pages, and filling them (page faults, zeroing) cost
+# more than the integration itself: on the Hindmarsh-Rose neuron's batches (4 states,
+# 25 columns, 111 segments, 136 steps: 12 MB each) 2 of 3 seconds on 120 calls
 WORKSPACE_LIMIT = 1 << 23
 _workspace = threading.local()
 
@@ -42,10 +42,7 @@ def run(integrator, coef, y0, group, sensitivities, components, hermite_table, c
     same products and sums as :func:`.shooting._hermite`); None where a state left the
     integrator's bound."""
     n, k = y0.shape[1], y0.shape[0]
-    start = y0
-    if sensitivities:
-        start = np.concatenate([y0[..., None], np.broadcast_to(np.eye(n), (k, n, n)),
-                                np.zeros((k, n, len(integrator.rows)))], -1)
+    start = with_sensitivities(integrator, y0) if sensitivities else y0
     z, dz, inside = states(integrator, coef, start, group, sensitivities, cache,
                            reuse=True)
     if not inside:
@@ -57,6 +54,14 @@ def run(integrator, coef, y0, group, sensitivities, components, hermite_table, c
     if not sensitivities:
         values, ends = values[..., 0], ends[..., 0]
     return values, ends
+
+
+def with_sensitivities(integrator, y0):
+    """The starts ``y0`` (K, n) with their sensitivities at the start (K, n, 1 + n +
+    free coefficients): each state's own start 1, everything else 0."""
+    k, n = y0.shape
+    return np.concatenate([y0[..., None], np.broadcast_to(np.eye(n), (k, n, n)),
+                           np.zeros((k, n, len(integrator.rows)))], -1)
 
 
 def states(integrator, coef, start, group, sensitivities, cache=None, reuse=False):
