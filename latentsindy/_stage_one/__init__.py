@@ -11,10 +11,11 @@ The modules, in the order a fit runs them:
    ``sequential_options`` (HyperSINDy, window by window): the two phases, support
    (pruning) then refit, of ``coefficient_model`` (Xi(t) from the generator).
    timeVAE's loss is defined once, in ``loss`` (its terms, weights and assembly; torch's
-   autograd evaluates it on a GPU); on a CPU ``numpy_step`` writes the step out in
-   numpy, its loss by ``numpy_loss`` on the samples or ``knot_loss`` on the decoder's
-   knots (the same loss, re-expressed); ``flat_adam`` is timeVAE's optimiser (torch's
-   Adam and gradient clipping, the same arithmetic, on one flat buffer);
+   autograd evaluates it on a GPU); on a CPU ``numpy_step`` writes the step out, its
+   layers by the compiled ``step_kernels``, its loss by ``numpy_loss`` on the samples
+   or ``knot_loss`` on the decoder's knots (the same loss, re-expressed);
+   ``flat_adam`` is timeVAE's optimiser (torch's Adam and gradient clipping on one
+   flat buffer, compiled on a CPU);
 3. ``decisions``, between the phases: freezing variation that does not pay, restoring
    pruned terms the data still need, then adopting the exact model's structure;
 4. ``evidence``: the exact varying-coefficient model of the data (``vcm``: B-splines in

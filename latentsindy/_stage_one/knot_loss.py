@@ -17,8 +17,9 @@ samples per knot interval every term of the loss is a fixed function of the knot
   samples straddle a knot, and only those are evaluated (on the samples in float32 the
   others are rounding noise; their gradient, a second difference itself, cancels in the
   knots' gradient up to rounding, so leaving them out changes the rounding only);
-* the mean magnitude ``mean_t |xi_t|`` is summed per knot interval over its samples
-  (a padded table of their interpolation weights).
+* the mean magnitude ``mean_t |xi_t|`` is summed per knot interval: where both knots
+  have one sign, from the sum of its samples' interpolation weights; where the sign
+  changes, sample by sample (a padded table of their weights).
 
 The values are those of :mod:`.loss` (the same definitions and shares, not an
 approximation): tests hold each term and its gradient to the samples' formulas and to
@@ -32,6 +33,7 @@ import numpy as np
 import scipy.sparse as sparse
 
 from ..generators._knots import curve_rows, interpolation, knot_grid, step_pairs
+from . import step_kernels as kernels
 from .loss import BEND_SHARE, TV_SHARE
 
 _CHUNK = 8192  # samples per block when the misfit's matrix is built
@@ -64,14 +66,15 @@ class KnotLoss:
         else:
             self._misfit_matrix(theta, xdot, weights, left, frac, n_knots)
         self._differences(left, frac, n_knots)
-        # the samples of each interval, padded: their weights on the interval's right knot
+        # the samples of each interval (``counts``), padded: their weights on the
+        # interval's right knot
         counts = np.bincount(left, minlength=n_knots - 1)
         width = int(counts.max())
-        self.share = np.zeros((width, n_knots - 1), self.dtype)
-        self.valid = np.zeros((width, n_knots - 1), self.dtype)
+        self.share = np.zeros((n_knots - 1, width), self.dtype)
+        self.counts = counts
         slot = np.arange(n_times) - np.concatenate([[0], np.cumsum(counts)])[left]
-        self.share[slot, left] = frac
-        self.valid[slot, left] = 1.0
+        self.share[left, slot] = frac
+        self.share_sums = np.bincount(left, weights=frac, minlength=n_knots - 1)
 
     def _misfit_matrix(self, theta, xdot, weights, left, frac, n_knots):
         """The misfit as ``x' G x - 2 c' x + base`` in the knots' values ``x`` (K, n, F)
@@ -138,8 +141,10 @@ class KnotLoss:
         if self.on_samples:
             return self._misfit_on_samples(xi)
         x = xi.astype(np.float64).ravel()
-        g = self.gram @ x - self.cross  # G x - c
-        total = float(x @ g) - float(self.cross @ x) + self.base  # x'Gx - 2c'x + base
+        g = np.empty_like(x)  # G x - c
+        gram = self.gram
+        total = kernels.quadratic_form(gram.indptr, gram.indices, gram.data, self.cross, x,
+                                       g) + self.base  # x'Gx - 2c'x + base
         grad = ((2.0 / self.count) * g).astype(self.dtype).reshape(xi.shape)
         return max(total, 0.0) / self.count, grad  # (an exact fit can round below 0)
 
@@ -158,46 +163,24 @@ class KnotLoss:
     def roughness(self, xi):
         """:func:`.loss.roughness` of the samples per term (n, F), from the knots'
         values ``xi`` (K, n, F), and its gradient by them."""
-        n_times, real = self.n_times, self.dtype.type
-        flat = np.ascontiguousarray(xi.reshape(xi.shape[0], -1).T)  # (nF, K): time last
-        diff = flat[:, 1:] - flat[:, :-1]  # (nF, K - 1)
-        before, after = diff[:, :-1], diff[:, 1:]  # d_{k-1}, d_k at knots 1 .. K - 2
-        curve = self.a[:, None] * before + self.b[:, None] * after  # (rows per knot, nF, K - 2)
-        across = self.u * before + self.v * after
-        c2 = BEND_SHARE / (n_times - 2)
-        c1 = TV_SHARE / (n_times - 1)
-        second = np.abs(curve).sum(axis=(0, 2), dtype=np.float64)
-        first = np.abs(diff) @ self.inside64 + np.abs(across).sum(axis=1, dtype=np.float64)
-        value = (c2 * second + c1 * first).astype(self.dtype)
-        s_curve, s_across = np.sign(curve), np.sign(across)
-        g_diff = real(c1) * self.inside * np.sign(diff)
-        g_diff[:, :-1] += (real(c2) * (self.a[:, None] * s_curve).sum(axis=0)
-                           + real(c1) * self.u * s_across)
-        g_diff[:, 1:] += (real(c2) * (self.b[:, None] * s_curve).sum(axis=0)
-                          + real(c1) * self.v * s_across)
+        flat = np.ascontiguousarray(xi.reshape(xi.shape[0], -1))  # (K, nF)
+        value = np.empty(flat.shape[1], self.dtype)
         grad = np.empty_like(flat)
-        grad[:, 0] = -g_diff[:, 0]
-        grad[:, 1:-1] = g_diff[:, :-1] - g_diff[:, 1:]
-        grad[:, -1] = g_diff[:, -1]
-        return value.reshape(xi.shape[1:]), grad.T.reshape(xi.shape)
+        kernels.knot_roughness(flat, self.inside, self.inside64, self.u, self.v, self.a,
+                               self.b, TV_SHARE / (self.n_times - 1),
+                               BEND_SHARE / (self.n_times - 2), value, grad,
+                               np.empty((flat.shape[0] - 1, flat.shape[1]), self.dtype))
+        return value.reshape(xi.shape[1:]), grad.reshape(xi.shape)
 
     def magnitude(self, xi):
         """``mean_t |xi_t|`` per term (n, F), and the gradient of ``sum_t |xi_t|`` by
         the knots (K, n, F)."""
-        flat = np.ascontiguousarray(xi.reshape(xi.shape[0], -1).T)  # (nF, K)
-        lo, hi = flat[:, None, :-1], flat[:, None, 1:]
-        values = lo + self.share * (hi - lo)  # (nF, width, K - 1): each interval's samples
-        sign = np.sign(values)
-        sign *= self.valid
-        total = (values * sign).reshape(flat.shape[0], -1).sum(axis=1, dtype=np.float64)
-        size = (total / self.n_times).astype(self.dtype)
-        on_right = (sign * self.share).sum(axis=1)  # (nF, K - 1)
-        on_left = sign.sum(axis=1) - on_right
+        flat = np.ascontiguousarray(xi.reshape(xi.shape[0], -1))  # (K, nF)
+        size = np.empty(flat.shape[1], self.dtype)
         grad = np.empty_like(flat)
-        grad[:, 0] = on_left[:, 0]
-        grad[:, 1:-1] = on_left[:, 1:] + on_right[:, :-1]
-        grad[:, -1] = on_right[:, -1]
-        return size.reshape(xi.shape[1:]), grad.T.reshape(xi.shape)
+        kernels.knot_magnitude(flat, self.share, self.counts, self.share_sums,
+                               self.n_times, size, grad)
+        return size.reshape(xi.shape[1:]), grad.reshape(xi.shape)
 
 
 def _add_rows(target, rows, values):

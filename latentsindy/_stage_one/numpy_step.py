@@ -1,4 +1,4 @@
-"""timeVAE's training loss and its gradient in numpy, written out: the CPU's step.
+"""timeVAE's training loss and its gradient written out: the CPU's step.
 
 On a CPU, a training step of stage one on a few thousand samples is mostly framework
 overhead: the autograd engine and a few hundred small torch operations of a few
@@ -6,23 +6,20 @@ microseconds each, around kernels that take about a millisecond in all. Here the
 same model and loss (:func:`.loss.loss_terms` of a
 :class:`.coefficient_model.CoefficientModel` around a
 :class:`~latentsindy.generators.timevae.TimeVAE`) are evaluated and differentiated by
-hand in numpy (the loss by :class:`.numpy_loss.NumpyLoss`), in float32, on views of the
-parameters' own storage: the gradients are written into each parameter's ``.grad``, the
-optimiser is unchanged, and torch's random stream draws the latent noise as before. The
-arithmetic is the model's, rounded differently (a test holds the gradients to
-autograd's); the model itself stays a torch module (pruning, the decisions between
+hand, in float32, on views of the parameters' own storage: each layer forward and
+backward by one compiled call (:mod:`.step_kernels`), the loss by
+:class:`.numpy_loss.NumpyLoss`; the gradients are written into each parameter's
+``.grad``, and torch's random stream draws the latent noise as before. The arithmetic
+is the model's, rounded differently (tests hold the gradients to autograd's); the
+model itself stays a torch module (pruning's decisions, the decisions between
 phases, sampling and saving use it as before).
 
-The convolutions run as matrix products over unrolled windows; the exact GELU's error
-function is torch's (vectorised), on the same memory. On a uniform grid with at least
-two samples per knot interval the loss is evaluated on the decoder's knots
-(:mod:`.knot_loss`: the same loss, its misfit and roughness without reading the series
-at every sample); elsewhere on the samples.
+On a uniform grid with at least two samples per knot interval the loss is evaluated
+on the decoder's knots (:mod:`.knot_loss`: the same loss, its misfit and roughness
+without reading the series at every sample); elsewhere on the samples.
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 import torch
@@ -31,13 +28,12 @@ from torch import nn
 
 from ..generators._knots import applies, interpolation, knot_grid
 from ..generators.timevae import _BASE, TimeVAE
+from . import step_kernels as kernels
 from .coefficient_model import CoefficientModel
 from .knot_loss import KnotLoss
 from .loss import relative_spacing
 from .numpy_loss import NumpyLoss, time_mean
 
-_INV_SQRT2 = np.float32(1.0 / math.sqrt(2.0))
-_INV_SQRT_2PI = np.float32(1.0 / math.sqrt(2.0 * math.pi))
 _LOGVAR_RANGE = (-12.0, 6.0)  # TimeVAE.encode's clamp
 
 
@@ -53,80 +49,43 @@ def supported(model, *data) -> bool:
             and all(x.device.type == "cpu" and x.dtype == torch.float32 for x in tensors))
 
 
-def _gelu(x):
-    """GELU (erf form) and its derivative at ``x``."""
-    phi = 0.5 * (1.0 + torch.erf(torch.from_numpy(x * _INV_SQRT2)).numpy())
-    slope = phi + x * _INV_SQRT_2PI * np.exp(-0.5 * x * x)
-    return x * phi, slope
-
-
 class _Conv:
-    """A 1-D convolution (padding k // 2) as a product over unrolled windows."""
+    """A 1-D convolution (padding k // 2) followed by a GELU, optionally after a linear
+    upsampling by two, on ``n_batch`` series of ``n_in`` points: the compiled kernels
+    of :mod:`.step_kernels` on buffers made once."""
 
-    def __init__(self, conv, n_in):
-        self.weight = conv.weight.detach().numpy()
+    def __init__(self, conv, n_in, n_batch, upsample=False):
+        weight = conv.weight.detach().numpy()  # views of the parameters' storage
+        n_out_ch, n_ch, self.k = weight.shape
+        self.w2 = weight.reshape(n_out_ch, n_ch * self.k)
         self.bias = conv.bias.detach().numpy()
-        self.stride = conv.stride[0]
-        self.pad = conv.padding[0]
-        self.k = conv.kernel_size[0]
-        self.n_in = n_in
-        self.n_out = (n_in + 2 * self.pad - self.k) // self.stride + 1
-        self.grads = (conv.weight.grad.numpy(), conv.bias.grad.numpy())
-        self.padded = self.cols = None  # buffers, made at the first call
+        self.grad_w2 = conv.weight.grad.numpy().reshape(self.w2.shape)
+        self.grad_b = conv.bias.grad.numpy()
+        self.stride, self.pad, self.upsample = conv.stride[0], conv.padding[0], upsample
+        length = 2 * n_in if upsample else n_in
+        self.n_out = (length + 2 * self.pad - self.k) // self.stride + 1
+        f32 = np.float32
+        self.padded = np.zeros((n_batch, n_ch, length + 2 * self.pad), f32)  # zero borders
+        self.cols = np.empty((n_batch, n_ch * self.k, self.n_out), f32)
+        self.pre, self.act, self.slope, self.grad_pre = (
+            np.empty((n_batch, n_out_ch, self.n_out), f32) for _ in range(4))
+        self.grad_padded = np.empty_like(self.padded)
+        self.grad_in = np.empty((n_batch, n_ch, n_in), f32)
+        self.no_input = self.grad_in[:0]
 
     def forward(self, x):
-        batch, channels, _ = x.shape
-        if self.padded is None or self.padded.shape[0] != batch:
-            self.padded = np.zeros((batch, channels, self.n_in + 2 * self.pad), np.float32)
-            self.cols = np.empty((batch, channels, self.k, self.n_out), np.float32)
-        self.padded[:, :, self.pad:self.pad + self.n_in] = x  # the borders stay zero
-        span = self.stride * (self.n_out - 1) + 1
-        for tap in range(self.k):  # (B, C * k, L): channel-major, tap-minor, as the weight
-            self.cols[:, :, tap] = self.padded[:, :, tap:tap + span:self.stride]
-        cols = self.cols.reshape(batch, channels * self.k, self.n_out)
-        w2 = self.weight.reshape(self.weight.shape[0], -1)
-        if batch == 1:  # a plain matrix product: numpy's stacked one costs more
-            return (w2 @ cols[0] + self.bias[:, None])[None]
-        return np.matmul(w2, cols) + self.bias[:, None]
+        """The activations (B, O, L_out) of ``x`` (B, C, n_in), C-contiguous."""
+        kernels.conv_gelu(x, self.k, self.stride, self.pad, self.upsample, self.padded,
+                          self.cols, self.w2, self.bias, self.pre, self.act, self.slope)
+        return self.act
 
-    def backward(self, grad_out, need_input=True):
-        grad_w, grad_b = self.grads
-        w2 = self.weight.reshape(self.weight.shape[0], -1)
-        batch, channels = grad_out.shape[0], self.weight.shape[1]
-        cols = self.cols.reshape(batch, channels * self.k, self.n_out)
-        if batch == 1:
-            grad_w.reshape(w2.shape)[...] = grad_out[0] @ cols[0].T
-        else:
-            grad_w.reshape(w2.shape)[...] = np.matmul(grad_out, cols.transpose(0, 2, 1)).sum(0)
-        grad_b[...] = grad_out.sum(axis=(0, 2))
-        if not need_input:
-            return None
-        cols = np.matmul(w2.T, grad_out).reshape(batch, channels, self.k, self.n_out)
-        padded = np.zeros((batch, channels, self.n_in + 2 * self.pad), dtype=np.float32)
-        span = self.stride * (self.n_out - 1) + 1
-        for tap in range(self.k):
-            padded[:, :, tap:tap + span:self.stride] += cols[:, :, tap]
-        return padded[:, :, self.pad:self.pad + self.n_in]
-
-
-def _upsample(x):
-    """Linear upsampling by two (align_corners=False) along the last axis."""
-    out = np.empty((*x.shape[:-1], 2 * x.shape[-1]), dtype=np.float32)
-    out[..., 0], out[..., -1] = x[..., 0], x[..., -1]
-    out[..., 2::2] = 0.25 * x[..., :-1] + 0.75 * x[..., 1:]
-    out[..., 1:-1:2] = 0.75 * x[..., :-1] + 0.25 * x[..., 1:]
-    return out
-
-
-def _upsample_backward(grad):
-    """The gradient of :func:`_upsample` by its input."""
-    even, odd = grad[..., 2::2], grad[..., 1:-1:2]
-    out = np.zeros((*grad.shape[:-1], grad.shape[-1] // 2), dtype=np.float32)
-    out[..., 0] += grad[..., 0]
-    out[..., -1] += grad[..., -1]
-    out[..., :-1] += 0.25 * even + 0.75 * odd
-    out[..., 1:] += 0.75 * even + 0.25 * odd
-    return out
+    def backward(self, grad_act, need_input=True):
+        """The parameters' gradients (written) and, if ``need_input``, the input's."""
+        grad_in = self.grad_in if need_input else self.no_input
+        kernels.conv_backward(grad_act, self.slope, self.cols, self.w2, self.grad_w2,
+                              self.grad_b, self.k, self.stride, self.pad, self.upsample,
+                              self.grad_pre, self.grad_padded, grad_in)
+        return grad_in if need_input else None
 
 
 def _interpolation(gen, n_knots, n_times):
@@ -159,16 +118,22 @@ class NumpyStep:
             if inputs.shape[-1] > gen.encoder_points:
                 inputs = F.adaptive_avg_pool1d(inputs, gen.encoder_points)
         self.enc_in = np.ascontiguousarray(inputs.numpy())
-        length, self.enc = self.enc_in.shape[-1], []
+        (n_traj, _, length), self.enc = self.enc_in.shape, []
         for layer in gen.encoder:
             if isinstance(layer, nn.Conv1d):
-                self.enc.append(_Conv(layer, length))
+                self.enc.append(_Conv(layer, length, n_traj))
                 length = self.enc[-1].n_out
         self.ups, length = [], _BASE
         for layer in gen.upsample:
-            if isinstance(layer, nn.Conv1d):
-                length *= 2  # each follows an upsampling by two
-                self.ups.append(_Conv(layer, length))
+            if isinstance(layer, nn.Conv1d):  # each follows an upsampling by two
+                self.ups.append(_Conv(layer, length, 1, upsample=True))
+                length *= 2
+        hidden = gen.options.hidden
+        last = self.enc[-1].act  # the encoder's summary: pooled, centred, 1 / sd
+        self.pooled = (np.empty(2 * hidden, np.float32), np.empty_like(last),
+                       np.empty(last.shape[:2], np.float32))
+        self.grad_pooled = np.empty_like(last)
+        self.dense = np.empty((3, hidden * _BASE), np.float32)  # from_latent: pre, act, slope
         n_times = theta.shape[1]
         uniform = gen.positions is None or len(gen.positions) != n_times  # no spacing
         # the loss on the knots where it is the samples' loss (knot_loss.py); else on
@@ -217,58 +182,47 @@ class NumpyStep:
 
     # -- encoder ---------------------------------------------------------------------
     def _encode(self):
-        h, parts = self.enc_in, []
+        h = self.enc_in
         for conv in self.enc:
-            a = conv.forward(h)
-            h, slope = _gelu(a)
-            parts.append(slope)
-        mean = h.mean(axis=2)
-        centred = h - mean[:, :, None]
-        std = np.sqrt((centred * centred).sum(axis=2) / (h.shape[2] - 1))
-        pooled = np.concatenate([mean, std], axis=1).mean(axis=0)
+            h = conv.forward(h)
+        pooled, centred, inv = self.pooled
+        kernels.pool(h, pooled, centred, inv)
         w, b, _, _ = self.linears["to_latent"]
         out = w @ pooled + b
         half = out.shape[0] // 2
         raw_logvar = out[half:]
         logvar = np.clip(raw_logvar, *_LOGVAR_RANGE)
-        return out[:half], logvar, raw_logvar, (parts, pooled, centred, std)
+        return out[:half], logvar, raw_logvar, self.pooled
 
     def _encode_backward(self, grad_out, pooled_parts):
-        parts, pooled, centred, std = pooled_parts
+        pooled, centred, inv = pooled_parts
         w, _, gw, gb = self.linears["to_latent"]
-        gw[...] = np.outer(grad_out, pooled)
+        np.multiply(grad_out[:, None], pooled[None, :], out=gw)
         gb[...] = grad_out
-        grad_pooled = (w.T @ grad_out) / centred.shape[0]
-        hidden = centred.shape[1]
-        length = centred.shape[2]
-        # a channel with no spread (a dead GELU: every output exactly 0) gets no
-        # gradient through its standard deviation, as in torch's std backward
-        inv = np.divide(1.0, (length - 1) * std, out=np.zeros_like(std), where=std > 0)
-        grad_h = (grad_pooled[None, :hidden, None] / length
-                  + grad_pooled[None, hidden:, None] * centred * inv[:, :, None])
+        grad_h = self.grad_pooled
+        kernels.pool_backward(w.T @ grad_out, centred, inv, grad_h)
         for k in range(len(self.enc) - 1, -1, -1):
-            grad_h = self.enc[k].backward(grad_h * parts[k], need_input=k > 0)
+            grad_h = self.enc[k].backward(grad_h, need_input=k > 0)
 
     # -- decoder ---------------------------------------------------------------------
     def _decode(self, z):
         w, b, _, _ = self.linears["from_latent"]
-        a = w @ z + b
-        h, slope0 = _gelu(a)
-        h = h.reshape(1, self.gen.options.hidden, -1)
-        parts = [(z, slope0)]
+        pre, act, slope = self.dense
+        np.dot(w, z, out=pre)
+        pre += b
+        kernels.gelu(pre, act, slope)
+        h = act.reshape(1, self.gen.options.hidden, -1)
         for conv in self.ups:
-            up = _upsample(h)
-            h, slope = _gelu(conv.forward(up))
-            parts.append(slope)
+            h = conv.forward(h)
         wc, bc, _, _ = self.linears["to_coefficients"]
         knots = wc[:, :, 0] @ h[0] + bc[:, None]  # (n_outputs, n_knots)
         if self.on_knots is not None:
-            return knots.T, (parts, h[0])  # (n_knots, n_outputs)
+            return knots.T, (z, h[0])  # (n_knots, n_outputs)
         series = np.asarray(self.interp @ knots.T)  # (T, n_outputs)
-        return series, (parts, h[0])
+        return series, (z, h[0])
 
     def _decode_backward(self, grad_series, decoder_parts):
-        parts, last = decoder_parts
+        z, last = decoder_parts
         wc, _, gwc, gbc = self.linears["to_coefficients"]
         if self.on_knots is not None:
             grad_knots = np.ascontiguousarray(grad_series.T)  # (n_outputs, n_knots)
@@ -277,30 +231,42 @@ class NumpyStep:
         gwc[:, :, 0] = grad_knots @ last.T
         gbc[...] = grad_knots.sum(axis=1)
         grad_h = (wc[:, :, 0].T @ grad_knots)[None]
-        for k in range(len(self.ups) - 1, -1, -1):
-            grad_up = self.ups[k].backward(grad_h * parts[k + 1])
-            grad_h = _upsample_backward(grad_up)
-        z, slope0 = parts[0]
-        grad_a = grad_h.reshape(-1) * slope0
+        for conv in reversed(self.ups):
+            grad_h = conv.backward(grad_h)
+        grad_a = grad_h.reshape(-1) * self.dense[2]
         w, _, gw, gb = self.linears["from_latent"]
-        gw[...] = np.outer(grad_a, z)
+        np.multiply(grad_a[:, None], z[None, :], out=gw)
         gb[...] = grad_a
         return w.T @ grad_a
 
     # -- loss ------------------------------------------------------------------------
-    def _loss(self, series, kl, l1_weight, rough_weight, kl_weight, rough_scaled):
-        """The loss of the model's coefficients (:class:`.numpy_loss.NumpyLoss`), and its
-        gradient by the generator's series and by the constants."""
+    def _coefficients(self, series):
+        """The model's coefficients from the generator's ``series`` (T or K, n F), with
+        the support (as numbers), the varying mask and the pinned mask."""
         model = self.model
-        n_states, n_features = self.shape
         support = model.support.numpy().astype(np.float32)
         varying = model.time_varying.numpy()
         pinned = model.pin_mask.numpy()
         const = np.where(pinned, model.pin_value.numpy(), self.constants)
-        mask = support * varying
         # (T, n, F) on the samples, (n_knots, n, F) on the knots; in the model's order of
         # operations (the samples' second differences cancel: a different rounding shows)
-        xi = support * (const + varying * series.reshape(-1, n_states, n_features))
+        xi = support * (const + varying * series.reshape(-1, *self.shape))
+        return xi, support, varying, pinned
+
+    def term_sizes(self):
+        """``mean_t |xi_t|`` per term (n, F) of the posterior mean (the latent at its
+        mean), as pruning reads it, at the parameters' current values."""
+        mu = self._encode()[0]
+        xi = self._coefficients(self._decode(mu)[0])[0]
+        if self.on_knots is not None:
+            return self.on_knots.magnitude(xi)[0]
+        return time_mean(np.abs(xi))
+
+    def _loss(self, series, kl, l1_weight, rough_weight, kl_weight, rough_scaled):
+        """The loss of the model's coefficients (:class:`.numpy_loss.NumpyLoss`), and its
+        gradient by the generator's series and by the constants."""
+        xi, support, varying, pinned = self._coefficients(series)
+        mask = support * varying
         terms, grad_xi, grad_kl = self.loss(xi, support, kl, l1_weight, rough_weight,
                                             kl_weight, rough_scaled)
         grad_series = (grad_xi * mask).reshape(xi.shape[0], -1)

@@ -205,7 +205,8 @@ def _steps(model, opt, phase, steps, data, options, bar, verbose, by_hand):
             start = options.warmup * steps
             ramp = 1.0 if phase == 2 else (step + 1 - start) / max(
                 1.0, (options.ramp - options.warmup) * steps)
-            _prune(model, inputs, options.threshold * min(1.0, ramp), free_rows)
+            sizes = None if by_hand is None else torch.from_numpy(by_hand.term_sizes())
+            _prune(model, inputs, options.threshold * min(1.0, ramp), free_rows, sizes)
         record = {k: float(v.detach()) if torch.is_tensor(v) else v for k, v in terms.items()}
         record.update(phase=phase, loss=float(loss.detach()) if torch.is_tensor(loss) else loss)
         history.append(record)
@@ -217,9 +218,12 @@ def _steps(model, opt, phase, steps, data, options, bar, verbose, by_hand):
 
 
 @torch.no_grad()
-def _prune(model, inputs, level, free_rows):
-    xi, _ = model(inputs, 0)
-    size = xi[0].abs().mean(dim=0)  # mean |Xi| over time: sign changes do not cancel
+def _prune(model, inputs, level, free_rows, size=None):
+    """Drop the free terms whose mean |Xi| over time (``size``, (n, F): sign changes do
+    not cancel; None: the model's, at the latent's mean) is below ``level``."""
+    if size is None:
+        xi, _ = model(inputs, 0)
+        size = xi[0].abs().mean(dim=0)
     drop = (size < level) & model.support & free_rows[:, None]
     if drop.any():
         model.support &= ~drop
