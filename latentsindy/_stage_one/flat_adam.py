@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import torch
 
-from . import step_kernels as kernels
-
 
 class FlatAdam:
     """Adam (no weight decay, no amsgrad) with clipping, over parameters it flattens.
@@ -44,6 +42,14 @@ class FlatAdam:
                  compiled: bool | None = None):
         self.params = list(params)
         self.lr, (self.beta1, self.beta2), self.eps = lr, betas, eps
+        on_cpu = all(p.device.type == "cpu" and p.dtype == torch.float32
+                     for p in self.params)
+        if compiled and not on_cpu:  # before the parameters are rebound
+            dtypes = sorted({str(p.dtype) for p in self.params})
+            devices = sorted({str(p.device) for p in self.params})
+            raise ValueError("FlatAdam(compiled=True) needs float32 parameters on the CPU; "
+                             f"got {', '.join(dtypes)} on {', '.join(devices)}.")
+        self.compiled = on_cpu if compiled is None else compiled
         with torch.no_grad():
             self.flat = torch.cat([p.detach().reshape(-1) for p in self.params])
         self.grad = torch.zeros_like(self.flat)
@@ -57,12 +63,10 @@ class FlatAdam:
         self.exp_avg = torch.zeros_like(self.flat)
         self.exp_avg_sq = torch.zeros_like(self.flat)
         self.steps = 0
-        on_cpu = self.flat.device.type == "cpu" and self.flat.dtype == torch.float32
-        if compiled and not on_cpu:
-            raise ValueError("FlatAdam(compiled=True) needs float32 parameters on the CPU; "
-                             f"got {self.flat.dtype} on {self.flat.device}.")
-        self.compiled = on_cpu if compiled is None else compiled
         if self.compiled:  # numpy views of the four buffers, for the compiled step
+            from .step_kernels import adam  # numba: loaded at the first training
+
+            self._adam = adam
             self._arrays = tuple(b.numpy() for b in (self.flat, self.grad, self.exp_avg,
                                                       self.exp_avg_sq))
 
@@ -78,8 +82,8 @@ class FlatAdam:
                                    "or assigned); zero gradients with FlatAdam.zero_grad.")
         self.steps += 1
         if self.compiled:
-            kernels.adam(*self._arrays, float(max_norm), float(self.lr), self.beta1,
-                         self.beta2, self.eps, self.steps)
+            self._adam(*self._arrays, float(max_norm), float(self.lr), self.beta1,
+                       self.beta2, self.eps, self.steps)
         else:
             with torch.no_grad():
                 self._torch_step(max_norm)

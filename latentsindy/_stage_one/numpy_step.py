@@ -6,13 +6,13 @@ microseconds each, around kernels that take about a millisecond in all. Here the
 same model and loss (:func:`.loss.loss_terms` of a
 :class:`.coefficient_model.CoefficientModel` around a
 :class:`~latentsindy.generators.timevae.TimeVAE`) are evaluated and differentiated by
-hand, in float32, on views of the parameters' own storage: each layer forward and
-backward by one compiled call (:mod:`.step_kernels`), the loss by
-:class:`.numpy_loss.NumpyLoss`; the gradients are written into each parameter's
+hand, in float32 (a few sums in float64), on views of the parameters' own storage:
+each layer forward and backward by one compiled call (:mod:`.step_kernels`), the loss
+by :class:`.numpy_loss.NumpyLoss`; the gradients are written into each parameter's
 ``.grad``, and torch's random stream draws the latent noise as before. The arithmetic
 is the model's, rounded differently (tests hold the gradients to autograd's); the
-model itself stays a torch module (pruning's decisions, the decisions between
-phases, sampling and saving use it as before).
+model itself stays a torch module (the decisions between phases, sampling and saving
+use it as before; pruning reads its terms' sizes from here).
 
 On a uniform grid with at least two samples per knot interval the loss is evaluated
 on the decoder's knots (:mod:`.knot_loss`: the same loss, its misfit and roughness
@@ -74,7 +74,8 @@ class _Conv:
         self.no_input = self.grad_in[:0]
 
     def forward(self, x):
-        """The activations (B, O, L_out) of ``x`` (B, C, n_in), C-contiguous."""
+        """The activations (B, O, L_out) of ``x`` (B, C, n_in), C-contiguous: this
+        layer's buffer, which its next call overwrites."""
         kernels.conv_gelu(x, self.k, self.stride, self.pad, self.upsample, self.padded,
                           self.cols, self.w2, self.bias, self.pre, self.act, self.slope)
         return self.act
@@ -160,9 +161,7 @@ class NumpyStep:
     def __call__(self, l1_weight, rough_weight, kl_weight, rough_scaled):
         """Loss terms (as :func:`.loss.loss_terms`, floats); the gradient of
         :func:`.loss.total_loss` with these weights is written."""
-        if self.model.constants.grad is not self._grad_owner:
-            raise RuntimeError("NumpyStep: the parameters' gradients have new storage (a new "
-                               "optimiser); make a new NumpyStep for it.")
+        self._check_storage()
         mu, logvar, raw_logvar, pooled_parts = self._encode()
         eps = torch.randn((1, *mu.shape), dtype=torch.float32).numpy()[0]
         std = np.exp(0.5 * logvar)
@@ -179,6 +178,11 @@ class NumpyStep:
         grad_logvar *= (raw_logvar >= _LOGVAR_RANGE[0]) & (raw_logvar <= _LOGVAR_RANGE[1])
         self._encode_backward(np.concatenate([grad_mu, grad_logvar]), pooled_parts)
         return terms
+
+    def _check_storage(self):
+        if self.model.constants.grad is not self._grad_owner:
+            raise RuntimeError("NumpyStep: the parameters' gradients have new storage (a new "
+                               "optimiser); make a new NumpyStep for it.")
 
     # -- encoder ---------------------------------------------------------------------
     def _encode(self):
@@ -256,6 +260,7 @@ class NumpyStep:
     def term_sizes(self):
         """``mean_t |xi_t|`` per term (n, F) of the posterior mean (the latent at its
         mean), as pruning reads it, at the parameters' current values."""
+        self._check_storage()
         mu = self._encode()[0]
         xi = self._coefficients(self._decode(mu)[0])[0]
         if self.on_knots is not None:

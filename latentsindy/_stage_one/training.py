@@ -16,7 +16,6 @@ from .._core.timing import timed
 from .decisions import between_phases
 from .flat_adam import FlatAdam
 from .loss import loss_terms, total_loss
-from .numpy_step import NumpyStep, supported
 
 __all__ = ["TrainingOptions", "check_nonnegative_fields",
            "make_training_options", "train"]
@@ -136,8 +135,8 @@ def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
     history = []
     params = [p for p in model.parameters() if p.requires_grad]
     data = (theta, xdot, weights, inputs, noise_var, free_rows)
-    # Adam's arithmetic on one flat buffer (flat_adam.py): the same coefficients as
-    # torch.optim.Adam(foreach=True), a tenth of a step less on a CPU
+    # Adam with clipping on one flat buffer (flat_adam.py): torch.optim.Adam's update,
+    # one compiled loop on a CPU, torch's foreach kernels (to the bit) elsewhere
     opt = FlatAdam(params, lr=options.learning_rate)
     bar = tqdm(total=options.support_steps + options.refit_steps, disable=not verbose,
                desc="dynamic SINDy", leave=False)
@@ -163,8 +162,11 @@ def train(model, theta, xdot, weights, inputs, noise_var, free_rows,
 def _train_phase(model, opt, phase, steps, data, options, bar, verbose):
     """``steps`` optimiser steps of one phase (learning rate on a cosine schedule)."""
     theta, xdot, weights, inputs, noise_var, free_rows = data
-    # on a CPU the loss and its gradient written out in numpy (numpy_step.py): the same
-    # model and loss without the framework's overhead per operation, on one thread
+    # on a CPU the loss and its gradient written out (numpy_step.py, its layers compiled
+    # by numba): the same model and loss without the framework's overhead per
+    # operation, on one thread. Imported here: numba loads at the first training
+    from .numpy_step import NumpyStep, supported
+
     if supported(model, theta, xdot, weights, inputs):
         by_hand = NumpyStep(model, theta, xdot, weights, inputs, noise_var, options.threshold,
                             free_rows)

@@ -141,15 +141,18 @@ def test_a_step_after_a_new_optimiser_is_an_error():
     opt.release()
 
 
-def test_training_by_hand_follows_autograd(monkeypatch):
+@pytest.mark.parametrize("irregular", [False, True])
+def test_training_by_hand_follows_autograd(monkeypatch, irregular):
     """A short two-phase training (pruning, the decisions between the phases) by hand
-    and with autograd (the path a GPU takes) ends at the same support and constants."""
+    and with autograd (the GPU's path; here with the compiled Adam) ends at the same
+    support and constants: on the knots and, with irregular times, on the samples."""
+    import latentsindy._stage_one.numpy_step as numpy_step
     import latentsindy._stage_one.training as training
 
     def trained(by_hand):
-        model, data = _problem(n_times=400, seed=2)
+        model, data = _problem(n_times=400, seed=2, irregular=irregular)
         if not by_hand:
-            monkeypatch.setattr(training, "supported", lambda *args: False)
+            monkeypatch.setattr(numpy_step, "supported", lambda *args: False)
         theta, xdot, weights, inputs, _, threshold, free = data
         options = training.TrainingOptions(support_steps=60, refit_steps=40, prune_every=5)
         torch.manual_seed(0)
@@ -167,3 +170,21 @@ def test_training_by_hand_follows_autograd(monkeypatch):
     for ours_k, ref_k in zip(our_history, history, strict=True):  # every step's loss
         assert ours_k["loss"] == pytest.approx(ref_k["loss"], rel=1e-3)
     assert list(our_history[-1]) == list(history[-1])  # the same record, key for key
+
+
+@pytest.mark.parametrize("irregular, n_times", [(False, 700), (True, 700), (False, 90)])
+def test_term_sizes_are_the_models_at_the_latent_mean(irregular, n_times):
+    """Pruning's sizes, mean |Xi| over the samples at the latent's mean, equal the torch
+    model's (``model(inputs, 0)``), on the knots and on the samples."""
+    model, data = _problem(irregular=irregular, n_times=n_times)
+    opt = FlatAdam([p for p in model.parameters() if p.requires_grad], lr=1e-3)
+    step = NumpyStep(model, *data)
+    assert (step.on_knots is None) == (irregular or n_times < 200)
+    with torch.no_grad():
+        ref = model(data[3], 0)[0][0].abs().mean(dim=0).numpy()
+    np.testing.assert_allclose(step.term_sizes(), ref, rtol=2e-5, atol=1e-7)
+    opt.release()
+    opt = FlatAdam([p for p in model.parameters() if p.requires_grad], lr=1e-3)
+    with pytest.raises(RuntimeError, match="new storage"):
+        step.term_sizes()
+    opt.release()

@@ -222,6 +222,7 @@ def test_flat_adam_is_torch_adam_with_clipping(compiled):
     torch_adam = torch.optim.Adam(ref, lr=3e-3, foreach=True)
     ours = FlatAdam(flat, lr=3e-3, compiled=compiled)
     assert ours.compiled is compiled
+    assert FlatAdam([nn.Parameter(torch.ones(2))], lr=0.1).compiled  # the CPU's default
     clipped = 0
     for step in range(200):
         grads = [torch.randn(s) * (0.002 if step % 2 else 0.5) for s in shapes]
@@ -253,8 +254,11 @@ def test_flat_adam_is_torch_adam_with_clipping(compiled):
 
 
 def test_flat_adam_compiled_needs_float32_on_the_cpu():
-    with pytest.raises(ValueError, match=r"compiled=True\) needs float32 .* got torch.float64"):
-        FlatAdam([nn.Parameter(torch.ones(3, dtype=torch.float64))], lr=0.1, compiled=True)
+    p = nn.Parameter(torch.ones(3, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"needs float32 .* got torch.float64 on cpu"):
+        FlatAdam([p], lr=0.1, compiled=True)
+    assert p.grad is None  # refused before the parameter was rebound to a flat buffer
+    assert not FlatAdam([p], lr=0.1).compiled  # the default there: torch's kernels
 
 
 def test_flat_adam_gradients_accumulate_in_its_buffer():
