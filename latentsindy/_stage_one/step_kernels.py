@@ -34,7 +34,7 @@ _HALF = _F32(0.5)
 _ONE = _F32(1.0)
 # erf by Abramowitz and Stegun 7.1.26 (absolute error below 1.5e-7), as torch's own
 # vectorised CPU erf: one exp, shared with the GELU's slope, and no branches on the
-# argument's size (the C library's erf took 2-5 times as long; a third of a step)
+# argument's size (the C library's erf with its own exp took 2-5 times as long)
 _P = _F32(0.3275911)
 _A = (_F32(0.254829592), _F32(-0.284496736), _F32(1.421413741), _F32(-1.453152027),
       _F32(1.061405429))
