@@ -267,13 +267,20 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
         return sigma, self.noise_correlation_
 
     def _differentiate(self, x, t):
+        return self._rates(x, t, diagnostics=True)
+
+    def _rates(self, x, t, diagnostics):
+        """The derivative of ``x`` and ``windows_``; with ``diagnostics`` also
+        ``smoothed_x_``, ``noise_gain_`` and ``noise_profile_`` (as long again to make
+        on a grid: :func:`rate` leaves them out)."""
         x = np.asarray(x, dtype=float)
         if np.ndim(t) == 0:
             steps = np.full(x.shape[0] - 1, float(t))
         else:
             steps = np.diff(np.asarray(t, dtype=float))
         if not np.allclose(steps, steps.mean(), rtol=1e-6, atol=0):
-            return self._irregular(x, np.concatenate([[0.0], np.cumsum(steps)]))
+            return self._irregular(x, np.concatenate([[0.0], np.cumsum(steps)]),
+                                   diagnostics)
         sigmas, phi = self._noise(x, None)
         self.windows_ = [choose_window(x[:, j], self.max_window, sigma=s)
                          for j, s in enumerate(sigmas)]
@@ -282,8 +289,11 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
         dt = float(steps.mean())
         for j, w in enumerate(self.windows_):
             w = min(w, x.shape[0] - (1 - x.shape[0] % 2))
-            smooth[:, j] = savgol_filter(x[:, j], w, _POLYORDER, mode="interp")
+            if diagnostics:
+                smooth[:, j] = savgol_filter(x[:, j], w, _POLYORDER, mode="interp")
             out[:, j] = _savgol_derivative(x[:, j], w, dt)
+        if not diagnostics:
+            return out
         self.smoothed_x_ = smooth
         coeffs = [savgol_coeffs(w, _POLYORDER, deriv=1, delta=dt) for w in self.windows_]
         self.noise_gain_ = np.array([ar1_gain(c, float(p))
@@ -294,7 +304,7 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
                                          / np.sum(coeffs[j] ** 2))
         return out
 
-    def _irregular(self, x, t):
+    def _irregular(self, x, t, diagnostics=True):
         """Local cubic fits on the actual times: windows by the discrepancy principle,
         half-width windows within half a window of the ends (as on a grid)."""
         sigmas, _ = self._noise(x, t)  # irregular times read as white
@@ -305,9 +315,12 @@ class AdaptiveSavitzkyGolay(ps.BaseDifferentiation):
         gains = np.empty_like(x)
         for j, w in enumerate(self.windows_):
             w = min(w, x.shape[0] - (1 - x.shape[0] % 2))
-            smooth[:, j] = local_fits.fit(x[:, j:j + 1], t, w, 0)[0][:, 0]
+            if diagnostics:
+                smooth[:, j] = local_fits.fit(x[:, j:j + 1], t, w, 0)[0][:, 0]
             deriv, gains[:, j] = local_fits.fit(x[:, j:j + 1], t, w, 1, _edge_window(w))
             out[:, j] = deriv[:, 0]
+        if not diagnostics:
+            return out
         self.smoothed_x_ = smooth
         # the typical (median) gain plays the role of the grid's interior gain; each
         # sample's own gain relative to it is its noise profile
@@ -325,6 +338,15 @@ def _per_state(value, n_states, name, what, high=np.inf) -> np.ndarray:
         raise ValueError(f"{name} must be one {what} or one per state ({n_states}); got "
                          f"{value!r}.")
     return arr
+
+
+def rate(x, t):
+    """:class:`AdaptiveSavitzkyGolay`'s derivative of ``x`` (T, n) at times ``t`` and
+    its windows, without the noise diagnostics it also makes (the smoothed states, the
+    noise gain and its profile along the series: on a grid, as long again as the
+    derivative): for a derivative that is only used as a series."""
+    method = AdaptiveSavitzkyGolay()
+    return method._rates(x, t, diagnostics=False), method.windows_
 
 
 def default_differentiation():

@@ -22,7 +22,7 @@ import numpy as np
 import pysindy as ps
 import sympy as sp
 
-from .._core.derivatives import AdaptiveSavitzkyGolay
+from .._core.derivatives import rate
 from .._stage_one.estimator import DynamicSINDy
 from ._dynamics import ORDER, FixedPoint, fixed_points, nrmse, simulate
 from ._plots import plot_model
@@ -176,7 +176,7 @@ def fit_switching_model(data, *, stage_one: bool = True, training=None, center: 
     if max_rounds < 1:
         raise ValueError(f"max_rounds must be >= 1; got {max_rounds}.")
     comps = [_component(item, center) for item in items]
-    ys = [AdaptiveSavitzkyGolay()(c.x[:, None], c.t)[:, 0] for c in comps]
+    ys = [rate(c.x[:, None], c.t)[0][:, 0] for c in comps]
     dts = [float(np.median(np.diff(c.t))) for c in comps]
     if test_half_width is not None and (not isinstance(test_half_width, int | np.integer)
                                         or test_half_width < 2):

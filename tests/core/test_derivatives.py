@@ -8,6 +8,7 @@ from latentsindy._core.derivatives import (
     AdaptiveSavitzkyGolay,
     measurement_noise,
     noise_level,
+    rate,
     window_capped,
 )
 
@@ -132,3 +133,17 @@ def test_measurement_noise_sees_through_sparse_sampling():
             assert noise_level(noisy, t)[0] > 3 * 0.01
         else:
             assert measurement_noise(noisy, t) == noise_level(noisy, t)
+
+
+@pytest.mark.parametrize("irregular", [False, True])
+def test_the_rate_alone_is_the_methods_derivative_to_the_bit(irregular):
+    """``rate`` leaves out the noise diagnostics, not any of the derivative's work: the
+    same derivative and windows as ``AdaptiveSavitzkyGolay``, to the bit."""
+    rng = np.random.default_rng(2)
+    t = (np.sort(rng.uniform(0, 20, 600)) if irregular else np.linspace(0, 20, 600))
+    x = np.column_stack([np.sin(t), np.cos(0.3 * t) ** 3]) + 0.01 * rng.normal(size=(600, 2))
+    method = AdaptiveSavitzkyGolay()
+    want = method(x, t)
+    got, windows = rate(x, t)
+    assert np.array_equal(got, want) and windows == method.windows_
+    assert min(windows) > 5  # noisy data: windows wider than the smallest

@@ -79,7 +79,7 @@ def test_a_batch_of_segments_on_their_own_steps_matches_them_one_by_one():
                                                                         dtype=torch.float64))
     np.testing.assert_allclose(z[10, 1], alone[-1, 0], rtol=1e-14)
     assert np.array_equal(z[10, 1], z[-1, 1])
-    assert batch.steps["compiled"].shape == (20, 2)  # made once, kept with the batch
+    assert batch.steps["compiled", 2].shape == (20, 2)  # made once, kept with the batch
 
 
 @pytest.mark.parametrize("start", [np.nan, 2e6])
@@ -137,3 +137,22 @@ def test_a_run_owns_its_results_though_the_trajectories_reuse_one_workspace(
     reused = compiled.states(integrator, COEF, z0, group, sensitivities, reuse=True)
     assert fresh[2] and reused[2]
     assert np.array_equal(fresh[0], reused[0]) and np.array_equal(fresh[1], reused[1])
+
+
+@pytest.mark.parametrize("sensitivities", [True, False])
+def test_the_polynomial_table_is_the_array_products_to_the_bit(sensitivities):
+    """``polynomial_table`` makes in one call the compressed table that the integrator's
+    numpy products give (its field, Jacobian and parameter derivatives), every entry
+    equal to the bit, in the same order; coefficients that are zero leave no entry."""
+    rng = np.random.default_rng(6)
+    for free in (COEF != 0, np.ones_like(COEF, bool), np.zeros_like(COEF, bool)):
+        system = ParametricSystem(("x", "y", "z"), 1, FEATURES, COEF, free)
+        integrator = Integrator(system, 1e6)
+        for coef in (COEF, COEF * rng.normal(size=COEF.shape), rng.normal(size=COEF.shape)):
+            fm = integrator.features
+            got = compiled.polynomial_table(fm.values_table, fm._flat_gradients, coef,
+                                            integrator.rows, integrator.cols, sensitivities)
+            table = (integrator._polynomial_table(coef) if sensitivities
+                     else fm.tables(coef)[0] @ coef.T)
+            for a, b in zip(got, sparse_table(table), strict=True):
+                assert a.dtype == b.dtype and np.array_equal(a, b)

@@ -54,15 +54,16 @@ def _batch(groups, members) -> Batch:
 
 
 def run_groups(integrator, coef, starts, groups, batches, sensitivities=True,
-               components=None, blow_ups=False):
+               components=None, blow_ups=False, as_numpy=False):
     """``(group, its segments, Integrator.run's output for them)`` for every group, in
     the groups' order, integrated batch by batch (``batches`` from
     :func:`make_batches`; None: group by group). ``blow_ups``: a batch that blows up is
     integrated again group by group, and a group that blows up on its own comes with
-    the output None (else :class:`BlowUp` is raised)."""
+    the output None (else :class:`BlowUp` is raised). ``as_numpy``: the outputs as
+    numpy arrays, not tensors."""
     def own(g):
         segs = np.arange(g.first, g.first + g.n_segments)
-        return segs, integrator.run(coef, starts[segs], g, sensitivities, components)
+        return segs, integrator.run(coef, starts[segs], g, sensitivities, components, as_numpy)
 
     if batches is None:
         for g in groups:
@@ -73,7 +74,7 @@ def run_groups(integrator, coef, starts, groups, batches, sensitivities=True,
         rows = np.concatenate([np.arange(groups[i].first, groups[i].first + k)
                                for i, _, k, _ in b.members])
         try:
-            out = integrator.run(coef, starts[rows], b, sensitivities, components)
+            out = integrator.run(coef, starts[rows], b, sensitivities, components, as_numpy)
         except BlowUp:
             if not blow_ups:
                 raise

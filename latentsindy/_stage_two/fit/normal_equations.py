@@ -58,14 +58,11 @@ class NormalEquations:
         grads = np.einsum("brc,br->bc", jac, resid)
         self._grad = None
         self.cost += float(np.sum(resid**2))
-        idx = np.concatenate([np.broadcast_to(np.arange(self.p), (len(segments), self.p)),
-                              self.p + (segments[..., None] * self.n
-                                        + np.arange(self.n)).reshape(len(segments), -1)],
-                             axis=1)
-        self.grad_index.append(idx.ravel())
+        index, where = _unknowns(self.p, self.n, self.size, segments)
+        self.grad_index.append(index)
         self.grads.append(grads.ravel())
         if self.dense:
-            self.where.append((idx[:, :, None] * self.size + idx[:, None, :]).ravel())
+            self.where.append(where)
             self.vals.append(gram.ravel())
         else:
             self.arrow.add(gram, segments)
@@ -217,6 +214,29 @@ class ArrowMatrix:
         """Whether every block, and every array of ``others`` (None: absent), is finite."""
         arrays = (self.border, self.coupling, self.diag, self.upper, *others)
         return all(bool(np.all(np.isfinite(a))) for a in arrays if a is not None)
+
+
+_UNKNOWNS: dict = {}  # _unknowns' answers: a fit adds the same few blocks hundreds of times
+
+
+def _unknowns(p, n, size, segments):
+    """The unknowns (B * (p + n m),) that blocks touching ``segments`` (B, m) fill (the
+    free coefficients, then each segment's starts), and the flat (row * size + col)
+    indices (B * (p + n m)^2,) of their Gram entries: read-only arrays, kept."""
+    key = (p, n, size, segments.dtype.str, segments.shape, segments.tobytes())
+    found = _UNKNOWNS.get(key)
+    if found is None:
+        b = len(segments)
+        idx = np.concatenate([np.broadcast_to(np.arange(p), (b, p)),
+                              p + (segments[..., None] * n + np.arange(n)).reshape(b, -1)],
+                             axis=1)
+        found = (idx.ravel(), (idx[:, :, None] * size + idx[:, None, :]).ravel())
+        for a in found:
+            a.flags.writeable = False
+        if len(_UNKNOWNS) >= 256:
+            _UNKNOWNS.clear()
+        _UNKNOWNS[key] = found
+    return found
 
 
 def _add(target, index, values):

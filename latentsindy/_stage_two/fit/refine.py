@@ -28,6 +28,7 @@ from ..._core.derivatives import measurement_noise
 from ..._core.oscillation import crossing_periods
 from ..context import NOISE_FLOOR
 from .batches import make_batches, run_groups
+from .data_rows import data_rows, sample_weights, sum_of_squares
 from .field import ParametricSystem
 from .least_squares import RESOLUTION, GiveUpWatch, covariance, levenberg_marquardt
 from .least_squares import degrees_of_freedom as _dof
@@ -185,46 +186,58 @@ class Problem:
                                                 self.options.device)
         return self._integrators[key]
 
-    def runs(self, system, starts, sensitivities=True, components=None, blow_ups=False):
+    def runs(self, system, starts, sensitivities=True, components=None, blow_ups=False,
+             as_numpy=False):
         """``(group, segments, output)`` of :meth:`Integrator.run` for every group, in
         order, integrated batch by batch (:func:`.batches.run_groups`)."""
         return run_groups(self.integrator_for(system), system.coef, starts, self.groups,
-                          self.batches, sensitivities, components, blow_ups)
+                          self.batches, sensitivities, components, blow_ups, as_numpy)
 
     # ------------------------------------------------------------- residuals
     def equations(self, system, starts, weights, rho, jacobian=True):
         """Normal equations (or the cost only) at (system, starts); ``weights`` (n_seg,)
         multiply each segment's data residuals (0: held out), or (n_seg, samples) each
-        sample's (the padded sample slots of :class:`.shooting.Group`)."""
+        sample's (the padded sample slots of :class:`.shooting.Group`).
+
+        Called hundreds of times per discovery on small arrays: in numpy and compiled
+        loops (:mod:`.data_rows`), the torch version's arithmetic to the bit."""
         n, n_free = starts.shape[1], system.n_free
         eq = NormalEquations(n_free, self.n_segments, n)
         data_cost = 0.0
-        sig = torch.as_tensor(self.sigma)
-        scale = torch.as_tensor(self.scale)
+        sig, scale = self.sigma, self.scale
         root = float(np.sqrt(rho))
-        for g, segs, out in self.runs(system, starts, jacobian, self.n_obs):
+        for g, segs, out in self.runs(system, starts, jacobian, self.n_obs, as_numpy=True):
             (vals, sens), (ends, sens_end) = out if jacobian else ((out[0], None),
                                                                     (out[1], None))
-            w = _sample_weights(weights[segs], g.mask)
-            a = None if self.carry is None else self.carry[g.trajectory]
-            resid = whiten((vals - g.observed) / sig * g.mask[..., None], a) * w
-            data_cost += float((resid**2).sum())
-            gap = (torch.as_tensor(starts[segs[1:]]) - ends[:-1]) / scale * root
+            mask = g.mask.numpy()
+            w = sample_weights(weights[segs], mask)
+            a = None if self.carry is None else self.carry[g.trajectory].numpy()
+            gap = (starts[segs[1:]] - ends[:-1]) / scale * root
             if not jacobian:
-                eq.cost += float((resid**2).sum() + (gap**2).sum())
+                resid = whiten((vals - g.observed.numpy()) / sig * mask[..., None], a)
+                squares = sum_of_squares(resid * w[..., None])
+                data_cost += squares
+                eq.cost += squares + sum_of_squares(gap)
                 continue
-            s = whiten(sens / sig[:, None] * g.mask[..., None, None], a) * w[..., None]
-            jac = torch.cat([s[..., n:], s[..., :n]], dim=-1)  # columns: (coef, start)
-            eq.add(jac.reshape(len(segs), -1, n_free + n).numpy(),
-                   resid.reshape(len(segs), -1).numpy(), segs[:, None])
+            # columns: (free coefficients, start)
+            resid, jac = data_rows(vals, sens, g.observed.numpy(), mask, sig, w, a, n)
+            data_cost += sum_of_squares(resid)
+            eq.add(jac, resid.reshape(len(segs), -1), segs[:, None])
             if len(segs) > 1:
                 se = sens_end[:-1] / scale[:, None] * root
-                eye = torch.eye(n, dtype=torch.float64).expand(len(segs) - 1, n, n)
-                jac_c = torch.cat([-se[..., n:], -se[..., :n], eye / scale[:, None] * root],
-                                  dim=-1)
-                eq.add(jac_c.numpy(), gap.numpy(), np.stack([segs[:-1], segs[1:]], axis=1))
+                eye = np.broadcast_to(self._continuity_unit(root), (len(segs) - 1, n, n))
+                jac_c = np.concatenate([-se[..., n:], -se[..., :n], eye], axis=-1)
+                eq.add(jac_c, gap, np.stack([segs[:-1], segs[1:]], axis=1))
         eq.data_cost = data_cost
         return eq
+
+    def _continuity_unit(self, root):
+        """d gap / d next start (the identity over ``scale``, times ``root``), kept."""
+        units = self.__dict__.setdefault("_units", {})
+        if root not in units:
+            units[root] = np.eye(len(self.scale)) / self.scale[:, None] * root
+            units[root].flags.writeable = False
+        return units[root]
 
     # ------------------------------------------------------------- fitting
     def fit(self, system=None, starts=None, weights=None, max_iterations=None,
@@ -378,14 +391,6 @@ class Problem:
         for g, segs, (vals, _) in self.runs(fit.system, fit.starts, False, self.n_obs):
             a = None if self.carry is None else self.carry[g.trajectory]
             yield g, segs, whiten((vals - g.observed) / sig * g.mask[..., None], a) ** 2
-
-
-def _sample_weights(weights, mask):
-    """Data weights (K, M, 1) of a group's padded samples from its segments' weights:
-    one per segment (K,) or per sample slot (K, >= M)."""
-    w = torch.as_tensor(weights, dtype=torch.float64)
-    w = w[:, None] if w.ndim == 1 else w[:, :mask.shape[1]]
-    return (w * mask)[..., None]
 
 
 def _dominant_period(observed, times):

@@ -46,6 +46,7 @@ class Group:
     starts: np.ndarray  # (K,) absolute start times
     # the Hermite interpolation's rows and weights, made at the first integration
     hermite: dict = field(default_factory=dict, repr=False, compare=False)
+    steps: dict = field(default_factory=dict, repr=False, compare=False)  # the grid's steps
 
 
 def make_groups(times, observed, duration, step, device="cpu"):
@@ -194,11 +195,10 @@ class Integrator:
 
         return func
 
-    @torch.no_grad()
     def run(self, coef, starts, group: Group | Batch, sensitivities=True,
-            components=None):
+            components=None, as_numpy=False):
         """States (and sensitivities) at the group's sample times and at segment ends,
-        as tensors on the CPU.
+        as tensors on the CPU (numpy arrays with ``as_numpy``).
 
         Returns ``(values, ends)``; with sensitivities each is a pair (state, S) where
         S is d state / d(start, free coefficients), shape (..., n, n + n_free). With
@@ -212,34 +212,42 @@ class Integrator:
                 group.hermite["numpy"] = _hermite_table(group, "numpy")
             out = compiled.run(self, np.asarray(coef, dtype=np.float64),
                                np.asarray(starts, dtype=np.float64), group, sensitivities,
-                               components, group.hermite["numpy"],
-                               group.steps if isinstance(group, Batch) else None)
+                               components, group.hermite["numpy"], group.steps)
             if out is None:  # a state left the bound
                 raise BlowUp()
-            values, ends = (torch.from_numpy(a) for a in out)
+            values, ends = out if as_numpy else (torch.from_numpy(a) for a in out)
         else:
-            like = dict(dtype=torch.float64, device=self.device)
-            coef = torch.as_tensor(coef, **like)
-            y0 = torch.as_tensor(starts, **like)
-            grid = group.grid
-            n, k = y0.shape[-1], y0.shape[0]
-            if sensitivities:
-                eye = torch.eye(n, **like).expand(k, n, n)
-                rest = torch.zeros(k, n, len(self.rows), **like)
-                z0 = _cat([y0[..., None], eye, rest], -1)
-                func = self._field(coef)
-            else:
-                z0, func = y0, self._plain(coef)
-            z, dz = rk4(func, z0, grid, getattr(group, "steps", None))  # (G, K, ...)
-            z, dz = z.swapaxes(0, 1), dz.swapaxes(0, 1)  # (K, G, ...)
-            ends = z[:, -1]
-            if components is not None:  # the same arithmetic on fewer states
-                z, dz = z[:, :, :components], dz[:, :, :components]
-            # the caller's algebra (normal equations, residuals) is on the CPU, in torch
-            values, ends = _hermite(z, dz, group).cpu(), ends.cpu()
+            values, ends = self._run_torch(coef, starts, group, sensitivities, components)
+            if as_numpy:
+                values, ends = values.numpy(), ends.numpy()
         if sensitivities:
             return (values[..., 0], values[..., 1:]), (ends[..., 0], ends[..., 1:])
         return values, ends
+
+    @torch.no_grad()
+    def _run_torch(self, coef, starts, group, sensitivities, components):
+        """:meth:`run`'s values and ends, sensitivities along the last axis, in torch
+        (without autograd: a context entered here only, as it costs microseconds a call
+        and the compiled path has no use for it)."""
+        like = dict(dtype=torch.float64, device=self.device)
+        coef = torch.as_tensor(coef, **like)
+        y0 = torch.as_tensor(starts, **like)
+        grid = group.grid
+        n, k = y0.shape[-1], y0.shape[0]
+        if sensitivities:
+            eye = torch.eye(n, **like).expand(k, n, n)
+            rest = torch.zeros(k, n, len(self.rows), **like)
+            z0 = _cat([y0[..., None], eye, rest], -1)
+            func = self._field(coef)
+        else:
+            z0, func = y0, self._plain(coef)
+        z, dz = rk4(func, z0, grid, getattr(group, "steps", None))  # (G, K, ...)
+        z, dz = z.swapaxes(0, 1), dz.swapaxes(0, 1)  # (K, G, ...)
+        ends = z[:, -1]
+        if components is not None:  # the same arithmetic on fewer states
+            z, dz = z[:, :, :components], dz[:, :, :components]
+        # the caller's algebra (normal equations, residuals) is on the CPU
+        return _hermite(z, dz, group).cpu(), ends.cpu()
 
 
 def _cat(arrays, axis):

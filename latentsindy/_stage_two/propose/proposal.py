@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..._core.derivatives import AdaptiveSavitzkyGolay
+from ..._core.derivatives import rate
 from ..._core.timing import timed
 from ..context import Context
 from .closure import ClosureFit, fit_closure, fit_rate_closure
@@ -90,11 +90,10 @@ def close(structure, fit, ctx, origin, order=1):
 def _derivative(series, t, edge=False):
     """The series' rate; with ``edge``, also the samples at either end whose rate was
     extrapolated (half the widest window)."""
-    method = AdaptiveSavitzkyGolay()
-    rate = method(np.asarray(series, float), t)
+    out, windows = rate(np.asarray(series, float), t)
     if edge:
-        return rate, max(method.windows_, default=1) // 2
-    return rate
+        return out, max(windows, default=1) // 2
+    return out
 
 
 def without_hidden(support, ctx: Context) -> Proposal:
