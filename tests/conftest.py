@@ -22,6 +22,19 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+@pytest.fixture(autouse=True)
+def fresh_map_pace():
+    """The second process's size rule (:data:`latentsindy._core.parallel.FORK_WORTH`)
+    remembers each map's pace in the process: every test begins without that memory,
+    as a fresh process would, so that which maps fork does not depend on the tests
+    before it."""
+    from latentsindy._core import parallel
+
+    parallel._SECONDS_PER_ITEM.clear()
+    yield
+    parallel.reap_helpers()
+
+
 def r2(estimate, truth):
     """Coefficient of determination of ``estimate`` against ``truth``."""
     estimate, truth = np.asarray(estimate), np.asarray(truth)

@@ -25,6 +25,11 @@ finished its share while the parent's last item runs), the inner map forks a hel
 of its own, so the idle core takes inner items: one begun then forks at once, one
 already looping forks for the items it has left. Two processes work at any time, and
 maps nest at most two deep.
+A map whose items are expected to take less than ``FORK_WORTH`` in all, at the pace of
+the last map from the same call site in this process, runs as a loop, and shares its
+items left once they are expected to take longer (:func:`_loop`): a helper costs more
+than it saves on a few short items. A helper that has sent its results is reaped later
+(:func:`_reap`), so that its exit does not hold up the parent.
 Whatever goes wrong in the helper (an exception, a result that does not pickle, a
 crash, no answer in ``patience`` seconds) costs time only: the parent computes the
 helper's items itself, so an error is raised by the parent, from the first item (in
@@ -33,6 +38,7 @@ the parent's order of work) that fails there.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
 import mmap
@@ -57,6 +63,16 @@ _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 _MAX_DEPTH = 2  # an outer map and one inner map fork; a third level loops
 _PARENT_IDLE, _HELPER_DONE = 0, 1  # a map's shared flags: the parent waits, the helper ended
 _enabled = True
+# A map whose items are expected to take less than this in all (at the pace of its last
+# run from the same call site) runs as a loop, and goes on to fork only if it runs
+# longer. A helper costs the parent 10-15 ms (the fork of a process that holds torch,
+# 500 MB; the helper's results, its exit out of the way) and more in pages copied on
+# write after it, both processes compete for the memory bus, and the most it can save
+# is half the map: prey-only Lotka-Volterra's maps of 30-40 ms (held-out folds, checks)
+# were slower forked than looped, and its whole call 10-20% slower with the helper
+# than without (2026-12-03)
+FORK_WORTH = 0.1
+_SECONDS_PER_ITEM: dict = {}  # per call site (the mapped function's code): the last pace
 _depth = 0  # forked maps this process is inside, as their parent or their helper
 _flags: mmap.mmap | None = None  # the innermost one's shared flags
 _side = _PARENT_IDLE  # which of its flags is this process's own: the other is its partner
@@ -118,8 +134,13 @@ def forked_map(func, items, patience: float = 60.0, cost=None) -> list:
         cost = [float(c) for c in cost]
         if len(cost) != len(items):
             raise ValueError(f"forked_map: {len(cost)} costs for {len(items)} items.")
-    if not available(len(items)):
+    if not available(len(items)) or _too_small(func, len(items)):
         return _loop(func, items, patience, cost)
+    return _forked(func, items, patience, cost)
+
+
+def _forked(func, items, patience, cost) -> list:
+    """:func:`forked_map` with a helper (:func:`available` said so)."""
     queue = list(range(len(items)))
     if cost is not None:
         queue.sort(key=lambda k: -cost[k])  # stable: equal costs keep their order
@@ -145,17 +166,39 @@ def forked_map(func, items, patience: float = 60.0, cost=None) -> list:
     return _share(func, items, queue, pid, queue_r, result_r, patience, flags)
 
 
+def _too_small(func, n_items) -> bool:
+    """Whether the last map of ``func`` (the same code: the same call site) took so
+    little per item that ``n_items`` of them are expected to take less than
+    ``FORK_WORTH``: too little for a helper to pay."""
+    per_item = _SECONDS_PER_ITEM.get(getattr(func, "__code__", None))
+    return per_item is not None and per_item * n_items < FORK_WORTH
+
+
+def _remember(func, seconds, n_items):
+    key = getattr(func, "__code__", None)
+    if key is not None and n_items:
+        _SECONDS_PER_ITEM[key] = seconds / n_items
+
+
 def _loop(func, items, patience, cost) -> list:
-    """``[func(x) for x in items]`` where no helper was to be had. Inside another map
-    (an inner map begun while that map's other process was busy), the items left are
-    shared as soon as that process has nothing left to do (:func:`available` is asked
-    again before each item), so that its core does not idle while this loop runs on."""
-    out = []
+    """``[func(x) for x in items]`` where no helper was to be had, or where the items
+    were expected to be too small for one (:func:`_too_small`). The items left are
+    shared (:func:`available` is asked again before each item) once they are expected
+    to take ``FORK_WORTH`` or more at the pace so far; and inside another map (an inner
+    map begun while that map's other process was busy) as soon as that process has
+    nothing left to do, so that its core does not idle while this loop runs on."""
+    out, start = [], time.perf_counter()
     for k, x in enumerate(items):
-        if k and _depth and available(len(items) - k):
-            return out + forked_map(func, items[k:], patience,
-                                    None if cost is None else cost[k:])
+        if k:
+            left = len(items) - k
+            pace = (time.perf_counter() - start) / k
+            if ((_depth or pace * left >= FORK_WORTH) and pace * left >= FORK_WORTH / 2
+                    and available(left)):
+                _remember(func, time.perf_counter() - start, k)
+                return out + _forked(func, items[k:], patience,
+                                     None if cost is None else cost[k:])
         out.append(func(x))
+    _remember(func, time.perf_counter() - start, len(items))
     return out
 
 
@@ -225,6 +268,8 @@ def _share(func, items, queue, pid, queue_r, result_r, patience, flags):
     for k in queue:  # the parent's order of work: an error comes from the first to fail
         if k not in results:
             results[k] = helper[k] if k in helper else func(items[k])
+    # two processes worked, from the fork to the helper's results: twice that time
+    _remember(func, 2.0 * (time.perf_counter() - start), len(items))
     return [results[k] for k in range(len(items))]
 
 
@@ -260,6 +305,9 @@ def _helper(func, items, queue_r, result_r, result_w, flags):
         view = memoryview(payload)
         while view:
             view = view[os.write(result_w, view):]
+        # the end of the results: without it the parent would read on until this
+        # process's exit had released its whole address space (10 ms and more)
+        os.close(result_w)
     finally:
         os._exit(0)
 
@@ -279,7 +327,7 @@ def _collect(pid, fd, timeout):
         if not data:
             break
         chunks.append(data)
-    _reap(pid)
+    _reap(pid, wait=False)
     try:
         return pickle.loads(b"".join(chunks)) if chunks else {}
     except Exception:  # noqa: BLE001 - a truncated payload (the helper died)
@@ -293,6 +341,27 @@ def _stop(pid):
     _reap(pid)
 
 
-def _reap(pid):
-    with contextlib.suppress(ChildProcessError):  # SIGCHLD ignored: reaped already
-        os.waitpid(pid, 0)
+_exiting: list[int] = []  # helpers that sent their results and may still be exiting
+
+
+def _reap(pid, wait=True):
+    """Reap the helper ``pid``; without ``wait``, only if it has ended, else later (at
+    the next reaping, or at the interpreter's exit): a helper that has sent its results
+    is done, and its exit (releasing a copy of the parent's address space) need not
+    hold up the parent."""
+    for other in list(_exiting):
+        with contextlib.suppress(ChildProcessError):  # SIGCHLD ignored: reaped already
+            if os.waitpid(other, os.WNOHANG)[0] == 0:
+                continue
+        _exiting.remove(other)
+    with contextlib.suppress(ChildProcessError):
+        if os.waitpid(pid, 0 if wait else os.WNOHANG)[0] == 0:
+            _exiting.append(pid)
+
+
+@atexit.register
+def reap_helpers():
+    """Wait for the helpers that have sent their results and are still exiting."""
+    while _exiting:
+        with contextlib.suppress(ChildProcessError):
+            os.waitpid(_exiting.pop(), 0)

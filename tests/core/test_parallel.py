@@ -65,11 +65,21 @@ def children():
     return found
 
 
+@pytest.fixture(autouse=True)
+def every_map_may_fork(monkeypatch):
+    """A helper for every map, however short its items (the size rule has tests of its
+    own), and no memory of earlier maps' pace."""
+    monkeypatch.setattr(parallel, "FORK_WORTH", 0.0)
+    monkeypatch.setattr(parallel, "_SECONDS_PER_ITEM", {})
+
+
 @pytest.fixture
 def no_helper_left():
-    """Asserts that every helper started in the test is gone (and reaped) at its end."""
+    """Asserts that every helper started in the test is gone (and reaped) at its end,
+    once those that sent their results have exited."""
     before = children()
     yield
+    parallel.reap_helpers()
     assert children() <= before
 
 
@@ -319,3 +329,45 @@ def test_the_switches_and_the_conditions(monkeypatch):
 def test_too_few_items_need_no_helper():
     assert forked_map(lambda x: (x * x, os.getpid()), [3]) == [(9, PARENT)]
     assert forked_map(lambda x: x, []) == []
+
+
+@needs_two_cores
+def test_helpers_that_sent_their_results_are_reaped_later(no_helper_left):
+    """The parent reads the helper's results to their end and goes on; the helper's
+    exit is reaped later (at the next map, or by ``reap_helpers``)."""
+    for _ in range(3):
+        assert forked_map(lambda x: x + 1, range(64)) == list(range(1, 65))
+    parallel.reap_helpers()
+    assert not parallel._exiting
+
+
+@needs_two_cores
+def test_a_map_known_to_be_short_runs_as_a_loop(monkeypatch, no_helper_left):
+    monkeypatch.setattr(parallel, "FORK_WORTH", 0.1)
+
+    def quick(x):
+        return os.getpid()
+
+    forked_map(quick, range(4))  # the first map from here: a helper, its pace kept
+    assert parallel._SECONDS_PER_ITEM[quick.__code__] < 0.1 / 4
+    assert forked_map(quick, range(4)) == [PARENT] * 4  # expected 4 x pace < 0.1 s
+    # more items than the pace allows for in 0.1 s: worth a helper again
+    many = int(0.1 / parallel._SECONDS_PER_ITEM[quick.__code__]) + 64
+    assert parallel._too_small(quick, 4) and not parallel._too_small(quick, many)
+
+
+@needs_two_cores
+def test_a_loop_that_runs_longer_than_expected_shares_what_is_left(monkeypatch,
+                                                                   no_helper_left):
+    monkeypatch.setattr(parallel, "FORK_WORTH", 0.1)
+
+    def slow(x):
+        time.sleep(0.06)
+        return x * x, os.getpid()
+
+    parallel._SECONDS_PER_ITEM[slow.__code__] = 1e-4  # last time it was quick
+    out = forked_map(slow, range(8))
+    assert [v for v, _ in out] == [x * x for x in range(8)]  # the loop's, in order
+    assert out[0][1] == PARENT  # the first item in the loop; at 0.06 s an item, the
+    assert len({pid for _, pid in out}) == 2  # seven left are worth a helper
+    assert 0.05 < parallel._SECONDS_PER_ITEM[slow.__code__] < 1.0  # the pace now

@@ -21,6 +21,13 @@ pytestmark = pytest.mark.skipif(sys.platform != "linux" or len(os.sched_getaffin
                                 reason="the helper needs Linux and two cores")
 
 
+@pytest.fixture(autouse=True)
+def every_map_may_fork(monkeypatch):
+    """A helper for every map, however short (the size rule is tested in
+    tests/core/test_parallel.py): these tests are of the pieces shared."""
+    monkeypatch.setattr(parallel, "FORK_WORTH", 0.0)
+
+
 def prey_only():
     data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=1000, noise=0.01, seed=4)
     return discover_hidden(data.x[:, :1], ps.PolynomialLibrary(degree=3), t=data.t,
