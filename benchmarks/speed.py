@@ -191,7 +191,7 @@ def main(families, draws, noise, one_process=False, max_time=None):
             row = one(family, index, noise, max_time=max_time)
             rows.append(row)
             print(f"{family:20s} draw {index}: {row['wall']:6.1f} s, {PYSINDY_FITS} pysindy "
-                  f"fits {row['pysindy']:.3f} s, ratio {row['ratio']:.0f}" + (
+                  f"fits {row['pysindy']:.3f} s, ratio {row['ratio']:.1f}" + (
                       "" if max_time is None else f", exact {row['exact']}, confident "
                       f"{row['confident']}, budget's doubt {row['budget']}"), flush=True)
     if max_time is not None:
@@ -203,7 +203,7 @@ def main(families, draws, noise, one_process=False, max_time=None):
         text = median_split(rs)
         print(f"| {family} | {len(rs)} | {np.median([r['wall'] for r in rs]):.1f} | "
               f"{max(r['wall'] for r in rs):.1f} | {np.median([r['pysindy'] for r in rs]):.3f} | "
-              f"{np.median([r['ratio'] for r in rs]):.0f} | {text} |")
+              f"{np.median([r['ratio'] for r in rs]):.1f} | {text} |")
     return rows
 
 
