@@ -270,7 +270,8 @@ class DynamicSINDy:
             samples, _ = self.model_(self.encoder_inputs_, int(n_samples))
             mean, _ = self.model_(self.encoder_inputs_, 0)
         scale = self.derivative_scale_[:, None] / self.feature_scale_[None, :]
-        samples = samples.cpu().double().numpy() * scale
+        samples = samples.cpu().double().numpy()  # a new array: scaled in place
+        samples *= scale
         mean = mean[0].cpu().double().numpy() * scale
         std = samples.std(axis=0) if samples.shape[0] > 1 else np.zeros_like(mean)
         lower, upper, doubts = None, None, ()
@@ -279,10 +280,9 @@ class DynamicSINDy:
             lower = np.minimum(exact.lower, mean - 2.0 * std) * self.support_
             upper = np.maximum(exact.upper, mean + 2.0 * std) * self.support_
             doubts = exact.doubts
-        return CoefficientSeries.from_samples(self.times_, mean, samples, self.state_names_,
-                                              self.feature_names_, self.support_,
-                                              self.time_varying_, lower=lower, upper=upper,
-                                              doubts=doubts)
+        return CoefficientSeries._of(self.times_, mean, samples, self.state_names_,
+                                     self.feature_names_, self.support_, self.time_varying_,
+                                     lower, upper, doubts, std=std, own=True)
 
     def predict(self, coefficients: CoefficientSeries | None = None) -> list[np.ndarray]:
         """Derivatives Theta(x) Xi(t) on the training trajectories, one array each."""
