@@ -41,3 +41,24 @@ def test_the_figure_draws_the_band_and_says_the_doubts():
         1.5, abs=0.02)
     assert "the structure is uncertain" in fig._suptitle.get_text()
     assert "DOUBTS" in series.summary()
+
+
+def test_a_series_made_from_samples_it_owns_is_the_copying_ones():
+    """The estimator gives its own samples away (frozen in place, not copied: 100 MB
+    on 20,000 times); the series is the one ``from_samples`` makes from a copy, and
+    ``from_samples`` leaves the caller's arrays writable."""
+    rng = np.random.default_rng(1)
+    t = np.linspace(0.0, 10.0, 301)
+    samples = rng.normal(size=(8, 301, 2, 3))
+    mean = samples.mean(axis=0)
+    masks = (np.ones((2, 3), bool), np.ones((2, 3), bool))
+    copied = CoefficientSeries.from_samples(t, mean, samples, ["x", "y"], ["1", "x", "y"],
+                                            *masks)
+    assert samples.flags.writeable and not copied.samples.flags.writeable
+    own = samples.copy()
+    given = CoefficientSeries._of(t, mean, own, ["x", "y"], ["1", "x", "y"], *masks, None,
+                                  None, (), std=own.std(axis=0), own=True)
+    assert given.samples is own and not own.flags.writeable
+    for name in ("times", "mean", "std", "samples", "noise_across_samples",
+                 "noise_around_smooth_mean", "lower", "upper"):
+        assert np.array_equal(getattr(given, name), getattr(copied, name)), name
