@@ -69,7 +69,7 @@ _enabled = True
 # 500 MB; the helper's results, its exit out of the way) and more in pages copied on
 # write after it, both processes compete for the memory bus, and the most it can save
 # is half the map: prey-only Lotka-Volterra's maps of 30-40 ms (held-out folds, checks)
-# were slower forked than looped, and its whole call 10-20% slower with the helper
+# were slower forked than looped, and its whole call 0-15% slower with the helper
 # than without (2026-12-03)
 FORK_WORTH = 0.1
 _SECONDS_PER_ITEM: dict = {}  # per call site (the mapped function's code): the last pace
@@ -182,18 +182,17 @@ def _remember(func, seconds, n_items):
 
 def _loop(func, items, patience, cost) -> list:
     """``[func(x) for x in items]`` where no helper was to be had, or where the items
-    were expected to be too small for one (:func:`_too_small`). The items left are
-    shared (:func:`available` is asked again before each item) once they are expected
-    to take ``FORK_WORTH`` or more at the pace so far; and inside another map (an inner
-    map begun while that map's other process was busy) as soon as that process has
+    were expected to be too small for one (:func:`_too_small`). Before each item,
+    the items left are shared if they are expected to take ``FORK_WORTH`` or more at
+    the pace so far and :func:`available` now says yes: inside another map (an inner
+    map begun while that map's other process was busy), as soon as that process has
     nothing left to do, so that its core does not idle while this loop runs on."""
     out, start = [], time.perf_counter()
     for k, x in enumerate(items):
         if k:
             left = len(items) - k
             pace = (time.perf_counter() - start) / k
-            if ((_depth or pace * left >= FORK_WORTH) and pace * left >= FORK_WORTH / 2
-                    and available(left)):
+            if pace * left >= FORK_WORTH and available(left):
                 _remember(func, time.perf_counter() - start, k)
                 return out + _forked(func, items[k:], patience,
                                      None if cost is None else cost[k:])
