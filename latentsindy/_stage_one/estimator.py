@@ -11,7 +11,8 @@ from scipy.optimize import nnls
 
 from .._core import saving
 from .._core import validation as val
-from .._core.derivatives import differentiate, noise_level, state_noise
+from .._core.derivatives import noise_level, state_noise
+from .._core.differentiation import differentiate
 from .._core.library import check_library, fit_library
 from .._core.local_fits import positions as time_positions
 from .._core.reprs import estimator_repr

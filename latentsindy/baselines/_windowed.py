@@ -31,7 +31,7 @@ import copy
 import numpy as np
 
 from .._core import validation as val
-from .._core.derivatives import differentiate
+from .._core.differentiation import differentiate
 from .._core.library import check_library, fit_library
 from .._stage_one.coefficients import CoefficientSeries
 from ._inputs import one_trajectory

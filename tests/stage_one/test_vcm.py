@@ -186,7 +186,8 @@ def test_a_hidden_state_is_not_split_into_state_functions():
     such constants, which the generator did not propose, must earn their place by
     halving the variation's degrees of freedom or cutting the misfit, and do not."""
     from latentsindy import systems
-    from latentsindy._core.derivatives import differentiate, noise_level
+    from latentsindy._core.derivatives import noise_level
+    from latentsindy._core.differentiation import differentiate
 
     data = systems.lotka_volterra(t_end=80.0, n_times=8000, noise=0.01)
     x, t = data.x[:, :1], data.t

@@ -197,10 +197,8 @@ class Problem:
     def equations(self, system, starts, weights, rho, jacobian=True):
         """Normal equations (or the cost only) at (system, starts); ``weights`` (n_seg,)
         multiply each segment's data residuals (0: held out), or (n_seg, samples) each
-        sample's (the padded sample slots of :class:`.shooting.Group`).
-
-        Called hundreds of times per discovery on small arrays: in numpy and compiled
-        loops (:mod:`.data_rows`), the torch version's arithmetic to the bit."""
+        sample's (the padded sample slots of :class:`.shooting.Group`). Numpy and
+        compiled loops (:mod:`.data_rows`): the torch version's arithmetic to the bit."""
         n, n_free = starts.shape[1], system.n_free
         eq = NormalEquations(n_free, self.n_segments, n)
         data_cost = 0.0
@@ -215,11 +213,9 @@ class Problem:
             gap = (starts[segs[1:]] - ends[:-1]) / scale * root
             if not jacobian:
                 resid = whiten((vals - g.observed.numpy()) / sig * mask[..., None], a)
-                squares = sum_of_squares(resid * w[..., None])
-                data_cost += squares
+                data_cost += (squares := sum_of_squares(resid * w[..., None]))
                 eq.cost += squares + sum_of_squares(gap)
                 continue
-            # columns: (free coefficients, start)
             resid, jac = data_rows(vals, sens, g.observed.numpy(), mask, sig, w, a, n)
             data_cost += sum_of_squares(resid)
             eq.add(jac, resid.reshape(len(segs), -1), segs[:, None])
@@ -236,7 +232,6 @@ class Problem:
         units = self.__dict__.setdefault("_units", {})
         if root not in units:
             units[root] = np.eye(len(self.scale)) / self.scale[:, None] * root
-            units[root].flags.writeable = False
         return units[root]
 
     # ------------------------------------------------------------- fitting
