@@ -118,7 +118,7 @@ def map_on(device, func, items, cost=None) -> list:
     return [func(x) for x in items]
 
 
-def forked_map(func, items, patience: float = 60.0, cost=None) -> list:
+def forked_map(func, items, patience: float = 60.0, cost=None, paced=True) -> list:
     """``[func(x) for x in items]``, shared with a forked helper when :func:`available`.
 
     ``func`` needs no pickling (the helper is a fork); its results must pickle to come
@@ -127,14 +127,16 @@ def forked_map(func, items, patience: float = 60.0, cost=None) -> list:
     ``cost`` (a number per item, optional) is what each item is expected to take: the
     costliest are handed out first (the longest-first rule, so that neither process is
     left with a long item at the end while the other waits); the results, and each one's
-    value, are the same whatever the order.
+    value, are the same whatever the order. ``paced=False``: the caller has judged the
+    map worth a helper itself (the structure search's own pace), and the size rule
+    (``FORK_WORTH``) does not apply.
     """
     items = list(items)
     if cost is not None:
         cost = [float(c) for c in cost]
         if len(cost) != len(items):
             raise ValueError(f"forked_map: {len(cost)} costs for {len(items)} items.")
-    if not available(len(items)) or _too_small(func, len(items)):
+    if not available(len(items)) or (paced and _too_small(func, len(items))):
         return _loop(func, items, patience, cost)
     return _forked(func, items, patience, cost)
 
@@ -307,6 +309,7 @@ def _helper(func, items, queue_r, result_r, result_w, flags):
         # the end of the results: without it the parent would read on until this
         # process's exit had released its whole address space (10 ms and more)
         os.close(result_w)
+        reap_helpers()  # this helper's own helpers: os._exit runs no exit handlers
     finally:
         os._exit(0)
 
@@ -340,7 +343,13 @@ def _stop(pid):
     _reap(pid)
 
 
-_exiting: list[int] = []  # helpers that sent their results and may still be exiting
+# helpers that sent their results and may still be exiting (a forked child starts with
+# none: its parent's helpers are not its children). Reaped by pid: code that reaps every
+# child itself (os.wait(), SIGCHLD ignored) could let a pid here be reused before it is
+# waited for; this module's helpers exit right after their results, so the window is
+# the length of an exit.
+_exiting: list[int] = []
+os.register_at_fork(after_in_child=_exiting.clear)
 
 
 def _reap(pid, wait=True):

@@ -364,7 +364,7 @@ def _side_by_side(search, step, adaptive, start):
         finally:
             model.looked = None
 
-    outcomes = forked_map(one, range(len(step)))
+    outcomes = forked_map(one, range(len(step)), paced=False)  # SIDE_BY_SIDE decided
     if any(outcome is None for outcome in outcomes):
         model._cache = before
         return None, 2

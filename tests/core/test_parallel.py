@@ -335,25 +335,39 @@ def test_too_few_items_need_no_helper():
 def test_helpers_that_sent_their_results_are_reaped_later(no_helper_left):
     """The parent reads the helper's results to their end and goes on; the helper's
     exit is reaped later (at the next map, or by ``reap_helpers``)."""
+    helpers = set()
     for _ in range(3):
-        assert forked_map(lambda x: x + 1, range(64)) == list(range(1, 65))
+        out = forked_map(lambda x: (x + 1, os.getpid()), range(64))
+        assert [v for v, _ in out] == list(range(1, 65))
+        helpers |= {pid for _, pid in out} - {PARENT}
+        # every helper that came back is reaped or kept to be: none is lost
+        assert all(pid in parallel._exiting or pid not in children() for pid in helpers)
     parallel.reap_helpers()
-    assert not parallel._exiting
+    assert not helpers & children()
 
 
 @needs_two_cores
-def test_a_map_known_to_be_short_runs_as_a_loop(monkeypatch, no_helper_left):
-    monkeypatch.setattr(parallel, "FORK_WORTH", 0.1)
+def test_a_map_known_to_be_short_runs_as_a_loop(monkeypatch, started, no_helper_left):
+    monkeypatch.setattr(parallel, "FORK_WORTH", 1.0)  # a fork is far quicker than this
 
     def quick(x):
         return os.getpid()
 
     forked_map(quick, range(4))  # the first map from here: a helper, its pace kept
-    assert parallel._SECONDS_PER_ITEM[quick.__code__] < 0.1 / 4
-    assert forked_map(quick, range(4)) == [PARENT] * 4  # expected 4 x pace < 0.1 s
-    # more items than the pace allows for in 0.1 s: worth a helper again
-    many = int(0.1 / parallel._SECONDS_PER_ITEM[quick.__code__]) + 64
+    assert parallel._SECONDS_PER_ITEM[quick.__code__] < 1.0 / 4
+    assert forked_map(quick, range(4)) == [PARENT] * 4  # expected 4 x pace < 1 s
+    # more items than the pace allows for in 1 s: worth a helper again
+    many = int(1.0 / parallel._SECONDS_PER_ITEM[quick.__code__]) + 64
     assert parallel._too_small(quick, 4) and not parallel._too_small(quick, many)
+
+    def waits(x):  # a caller that judged the map itself: a helper whatever the pace
+        started.mark()
+        started.wait()
+        return os.getpid()
+
+    parallel._SECONDS_PER_ITEM[waits.__code__] = 1e-6
+    assert parallel._too_small(waits, 4)
+    assert len(set(forked_map(waits, range(4), paced=False))) == 2
 
 
 @needs_two_cores

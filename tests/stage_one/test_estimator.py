@@ -170,6 +170,17 @@ def test_seed_makes_runs_repeatable(fast):
     np.testing.assert_array_equal(runs[0].samples, runs[1].samples)
 
 
+def test_coefficients_asked_twice_are_the_same(fast):
+    """The posterior samples are scaled in place and given to the result: nothing the
+    model keeps is touched, so a second call gives the first's arrays again."""
+    data = systems.harmonic_oscillator(A=-1.0, n_times=300)
+    model = DynamicSINDy(verbose=False, training=fast, seed=2).fit(data.x, data.t)
+    first, second = model.coefficients(n_samples=4), model.coefficients(n_samples=4)
+    for name in ("mean", "std", "samples", "lower", "upper"):
+        assert np.array_equal(getattr(first, name), getattr(second, name)), name
+    assert not first.samples.flags.writeable and first.samples is not second.samples
+
+
 def test_result_object(fast):
     data = systems.harmonic_oscillator(A=-1.0, n_times=300)
     model = DynamicSINDy(ps.PolynomialLibrary(degree=2), verbose=False, training=fast)

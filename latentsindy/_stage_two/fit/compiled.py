@@ -93,17 +93,18 @@ def states(integrator, coef, start, group, sensitivities, cache=None, reuse=Fals
     return z, dz, inside
 
 
-def _outputs(shape, reuse):
+def _outputs(shape, reuse, slot="buffer"):
     """Two arrays of ``shape`` for the states and slopes: views of this thread's
-    workspace with ``reuse`` (grown as needed, up to ``WORKSPACE_LIMIT`` values each),
-    else new."""
+    workspace ``slot`` with ``reuse`` (grown as needed, up to ``WORKSPACE_LIMIT`` values
+    each), else new."""
     size = int(np.prod(shape))
     if not reuse or size > WORKSPACE_LIMIT:
         return np.empty(shape), np.empty(shape)
-    held = getattr(_workspace, "buffer", None)
+    held = getattr(_workspace, slot, None)
     if held is None or held.shape[1] < size:  # grown by half at least: few regrowths
         grown = 0 if held is None else held.shape[1] + held.shape[1] // 2
-        held = _workspace.buffer = np.empty((2, min(max(size, grown), WORKSPACE_LIMIT)))
+        held = np.empty((2, min(max(size, grown), WORKSPACE_LIMIT)))
+        setattr(_workspace, slot, held)
     return held[0, :size].reshape(shape), held[1, :size].reshape(shape)
 
 
@@ -271,18 +272,23 @@ def integrate(z0, steps, basis, degree, starts, rows, values, n_value, bound, z,
     return True
 
 
-@njit(cache=True, nogil=True)
 def hermite(z, dz, rows, w00, w10, w01, w11, components):
     """Cubic Hermite interpolation of the grid values ``z`` and slopes ``dz`` (G, n,
     W, K) (:func:`integrate`'s) of the first ``components`` states: (P, components, W)
     at the P samples whose left grid point is ``rows`` (segment times G plus grid
     index), weights as :func:`.shooting._hermite_table` makes them, summed in
     :func:`.shooting._hermite`'s order. The grid values are first copied segment by
-    segment ((K, G, components, W)), so that each sample reads two contiguous blocks:
-    read in place, every value is a stride of K apart (2.7 times the time)."""
+    segment ((K, G, components, W), into this thread's second workspace), so that each
+    sample reads two contiguous blocks: read in place, every value is a stride of K
+    apart (2.7 times the time)."""
     g, _, w, n_seg = z.shape
-    zk = np.empty((n_seg, g, components, w))
-    dzk = np.empty((n_seg, g, components, w))
+    zk, dzk = _outputs((n_seg, g, components, w), True, "hermite")
+    return _hermite(z, dz, rows, w00, w10, w01, w11, components, zk, dzk)
+
+
+@njit(cache=True, nogil=True)
+def _hermite(z, dz, rows, w00, w10, w01, w11, components, zk, dzk):
+    g, _, w, n_seg = z.shape
     for j in range(g):
         for s in range(components):
             for i in range(w):

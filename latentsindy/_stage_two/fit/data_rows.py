@@ -53,7 +53,7 @@ def data_rows(vals, sens, observed, mask, sigma, weights, carry, n_states):
                  whitened, n_states)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")  # x / 0: inf or nan, as in torch
 def _rows(vals, sens, observed, mask, sigma, weights, carry, root, root_sens, whitened,
           n_states):
     n_seg, n_samples, n_obs = vals.shape
