@@ -52,14 +52,14 @@ def ar1_noise(x, t=None):
     read = {}  # the variances of one column at one spacing over the same recordings,
     # read once: the three fits share their spacings (28 medians of 2,000 values -> 12)
     for fit, spacings in ((_ar1_fit, M), (_ar1_signal_fit, M), (_ar1_signal_fit, M_WIDE)):
-        usable = [k for k, a in enumerate(xs) if len(a) > 4 * spacings + 16]
+        usable = tuple(k for k, a in enumerate(xs) if len(a) > 4 * spacings + 16)
         ms = np.arange(1, spacings + 1)
         for j in np.flatnonzero(phi == 0) if usable else ():
             for m in ms:
-                if (key := (tuple(usable), j, m)) not in read:
-                    read[key] = _robust_var(np.concatenate([_dilated(xs[k][:, j], m)
-                                                            for k in usable]))
-            v = np.array([read[tuple(usable), j, m] for m in ms])
+                if (usable, j, m) not in read:
+                    read[usable, j, m] = _robust_var(np.concatenate(
+                        [_dilated(xs[k][:, j], m) for k in usable]))
+            v = np.array([read[usable, j, m] for m in ms])
             if not np.all(v > 0):
                 continue
             err, level, p = fit(v, ms)

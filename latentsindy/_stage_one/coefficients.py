@@ -103,14 +103,14 @@ class CoefficientSeries:
         around = (samples - smooth).std(axis=1).mean(axis=0)
         lower = mean - 2.0 * std if lower is None else lower
         upper = mean + 2.0 * std if upper is None else upper
-        arrays = [a if own and k in (2, 3) else np.array(a, copy=True)
-                  for k, a in enumerate((times, mean, std, samples, support, time_varying,
-                                         std.mean(axis=0), around, lower, upper))]
-        for a in arrays:
+        if not own:
+            std, samples = np.array(std, copy=True), np.array(samples, copy=True)
+        t, m, sup, tv, n1, n2, lo, hi = (np.array(a, copy=True) for a in (
+            times, mean, support, time_varying, std.mean(axis=0), around, lower, upper))
+        for a in (t, m, std, samples, sup, tv, n1, n2, lo, hi):
             a.setflags(write=False)
-        t, m, s, smp, sup, tv, n1, n2, lo, hi = arrays
-        return cls(t, m, s, smp, tuple(state_names), tuple(feature_names), sup, tv, n1, n2,
-                   lo, hi, as_doubts(doubts))
+        return cls(t, m, std, samples, tuple(state_names), tuple(feature_names), sup, tv,
+                   n1, n2, lo, hi, as_doubts(doubts))
 
     @property
     def half_width(self) -> np.ndarray:
