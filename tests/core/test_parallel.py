@@ -360,14 +360,15 @@ def test_a_map_known_to_be_short_runs_as_a_loop(monkeypatch, started, no_helper_
     many = int(1.0 / parallel._SECONDS_PER_ITEM[quick.__code__]) + 64
     assert parallel._too_small(quick, 4) and not parallel._too_small(quick, many)
 
-    def waits(x):  # a caller that judged the map itself: a helper whatever the pace
+    def judged(x):  # a caller that judged the map itself: a helper whatever the pace
         started.mark()
-        started.wait()
+        started.wait()  # the parent's items wait until the helper has taken one
         return os.getpid()
 
-    parallel._SECONDS_PER_ITEM[waits.__code__] = 1e-6
-    assert parallel._too_small(waits, 4)
-    assert len(set(forked_map(waits, range(4), paced=False))) == 2
+    parallel._SECONDS_PER_ITEM[judged.__code__] = 1e-6
+    assert parallel._too_small(judged, 4)
+    pids = set(forked_map(judged, range(4), paced=False))
+    assert len(pids | {PARENT}) == 2  # the helper's items came back (it may take all)
 
 
 @needs_two_cores
