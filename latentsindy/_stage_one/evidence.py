@@ -16,10 +16,10 @@ knots are not capped).
 from __future__ import annotations
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from .._core.budget import expired, left_out, passed
 from .._core.derivatives import choose_window
+from .._core.threads import one_blas_thread
 from .._core.timing import timed
 from .structure import GAUSSIAN, EquationChoice, StructureSearch
 from .vcm import LevelGram, spline_basis
@@ -99,7 +99,7 @@ class VaryingCoefficients:
         free. Returns one :class:`EquationChoice` per equation (None for an equation
         with an empty fixed support).
         """
-        with threadpool_limits(1):  # small dense algebra: threads cost more than they gain
+        with one_blas_thread():  # small dense algebra: threads cost more than they gain
             return self._choose(support, varying, free_rows, allowed, threshold)
 
     def _choose(self, support, varying, free_rows, allowed, threshold):

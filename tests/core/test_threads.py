@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from latentsindy._core.threads import flush_denormals, single_thread
+from latentsindy._core.threads import flush_denormals, one_blas_thread, single_thread
 
 # half of float32's smallest normal number: a denormal
 _DENORMAL = np.float32(np.finfo(np.float32).tiny / 2)
@@ -61,3 +61,27 @@ def test_single_thread_restores_torch_threads():
     with single_thread():
         assert torch.get_num_threads() == 1
     assert torch.get_num_threads() == before
+
+
+def _pool_threads():
+    """{library path: threads} of every thread pool threadpoolctl finds now, afresh."""
+    from threadpoolctl import threadpool_info
+
+    return {p["filepath"]: p["num_threads"] for p in threadpool_info()}
+
+
+def test_single_thread_limits_every_thread_pool_and_restores_them():
+    before = _pool_threads()
+    assert before  # numpy's BLAS at least
+    with single_thread():
+        inside = _pool_threads()
+    assert inside == dict.fromkeys(before, 1)  # the kept controller misses no library
+    assert _pool_threads() == before
+
+
+def test_one_blas_thread_is_restored_when_the_block_raises():
+    before = _pool_threads()
+    with pytest.raises(RuntimeError, match="inside"), one_blas_thread():
+        assert set(_pool_threads().values()) == {1}
+        raise RuntimeError("inside")
+    assert _pool_threads() == before
