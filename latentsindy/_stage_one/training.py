@@ -32,7 +32,13 @@ class TrainingOptions:
     Attributes
     ----------
     support_steps, refit_steps : int
-        Optimiser steps of phase one (find the support) and phase two (refit).
+        Optimiser steps of phase one (find the support) and phase two (refit). The
+        refit starts from phase one's network on a structure already decided, with its
+        own cosine schedule; its loss settles within a few hundred steps (prey-only
+        Lotka-Volterra: within 1% of its end by step 300 of 700). Stage two fits the
+        laws to the data themselves: 400 refit steps instead of 700 gave the same laws,
+        to the last digit, in 61 of 63 calls of the quick benchmark tables, and the
+        varying coefficients' R^2 within 0.001 in the stage-one benchmark.
     learning_rate : float
         Adam's initial step size; a cosine schedule decays it within each phase.
     threshold : float
@@ -66,7 +72,7 @@ class TrainingOptions:
     """
 
     support_steps: int = 800
-    refit_steps: int = 700
+    refit_steps: int = 400
     learning_rate: float = 3e-3
     threshold: float = 0.05
     prune_every: int = 25
