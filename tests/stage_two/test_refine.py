@@ -342,6 +342,49 @@ def test_arrow_blocks_take_only_consecutive_pairs_of_segments():
         eq.add(np.ones((1, 2, 4)), np.ones((1, 2)), np.array([[0, 2]]))
 
 
+def _arrow_add_by_arrays(arrow, gram, segments):
+    """ArrowMatrix.add as array operations (the code the compiled loop replaced)."""
+    p, n, first = arrow.p, arrow.n, segments[:, 0]
+    arrow.border += gram[:, :p, :p].sum(axis=0)
+    for j in range(segments.shape[1]):
+        rows = slice(p + j * n, p + (j + 1) * n)
+        np.add.at(arrow.coupling, first + j, gram[:, rows, :p])
+        np.add.at(arrow.diag, first + j, gram[:, rows, rows])
+    if segments.shape[1] == 2:
+        np.add.at(arrow.upper, first, gram[:, p:p + n, p + n:])
+
+
+@pytest.mark.parametrize("ordered", [True, False])
+def test_arrow_blocks_are_added_as_the_array_operations_add_them_to_the_bit(ordered):
+    """The compiled addition of Gram blocks (segments in increasing order) and the
+    general one (any order, repeats) give the array operations' sums bit for bit, on
+    magnitudes spread over 16 decades where any change of order would show; one free
+    coefficient included (numpy sums the border pairwise then)."""
+    from latentsindy._stage_two.fit.normal_equations import ArrowMatrix
+
+    rng = np.random.default_rng(7)
+    for p, n, k, m in [(1, 2, 34, 2), (1, 1, 30, 1), (0, 2, 20, 2), (6, 2, 50, 2),
+                       (10, 3, 40, 1), (4, 4, 9, 2)]:
+        blocks = [rng.normal(size=s) for s in [(p, p), (k, n, p), (k, n, n), (k - 1, n, n)]]
+        ours = ArrowMatrix(*(b.copy() for b in blocks))
+        theirs = ArrowMatrix(*(b.copy() for b in blocks))
+        for _ in range(3):
+            n_blocks = int(rng.integers(1, k - m + 2))
+            first = np.sort(rng.choice(k - m + 1, n_blocks, replace=False))
+            if not ordered:
+                first = rng.permutation(np.concatenate([first, first[:2]]))
+            segments = first[:, None] + np.arange(m)[None]
+            size = p + n * m
+            gram = rng.normal(size=(len(first), size, size)) * 10.0 ** rng.integers(
+                -8, 8, size=(len(first), 1, 1))
+            ours.add(gram, segments)
+            _arrow_add_by_arrays(theirs, gram, segments)
+        for a, b in zip([ours.border, ours.coupling, ours.diag, ours.upper],
+                        [theirs.border, theirs.coupling, theirs.diag, theirs.upper],
+                        strict=True):
+            assert np.array_equal(a, b)
+
+
 @pytest.mark.parametrize("n_free", [0, 5])
 def test_term_selection_eliminates_large_starts_blocks_through_their_band(n_free):
     """The coefficients' Schur complement as term selection makes it, of 700 segments

@@ -21,6 +21,7 @@ from functools import lru_cache
 
 import numpy as np
 import scipy.sparse as sps
+from numba import njit
 from scipy.sparse.linalg import MatrixRankWarning, spsolve
 
 from ..._core.banded import cholesky_upper, solve_upper
@@ -106,12 +107,18 @@ class ArrowMatrix:
         m = 1 or consecutive pairs (m = 2). Where the blocks' segments are distinct (as
         in every addition of the refinement) by one indexed sum, else by ``np.add.at``."""
         p, n = self.p, self.n
+        # numpy's own sum: its order of summation depends on the shapes (pairwise where
+        # the blocks' axis becomes its inner loop)
         self.border += gram[:, :p, :p].sum(axis=0)
         first = segments[:, 0]
         if segments.shape[1] == 2 and not np.all(segments[:, 1] == first + 1):
             raise ValueError("ArrowMatrix.add: pairs of segments must be consecutive "
                              f"(s, s + 1); received {segments[:3].tolist()}...")
-        distinct = bool(np.all(np.diff(first) > 0)) or len(np.unique(first)) == len(first)
+        if bool(np.all(np.diff(first) > 0)):  # distinct and in order: one compiled loop
+            _arrow_add(self.coupling, self.diag, self.upper, gram, first.astype(np.intp),
+                       segments.shape[1], p, n)
+            return
+        distinct = len(np.unique(first)) == len(first)
         add = _add if distinct else np.add.at
         for j in range(segments.shape[1]):
             rows = slice(p + j * n, p + (j + 1) * n)
@@ -242,6 +249,30 @@ def _unknowns(p, n, size, segments):
 def _add(target, index, values):
     """``target[index] += values`` for distinct ``index`` (np.add.at's sum, faster)."""
     target[index] += values
+
+
+@njit(cache=True, nogil=True)
+def _arrow_add(coupling, diag, upper, gram, first, m, p, n):
+    """The starts' blocks of :meth:`ArrowMatrix.add` (Gram blocks ``gram`` (B, p + n m,
+    p + n m) whose first segments ``first`` (B,) increase strictly) in one loop, without
+    the array version's small operations (8,000 calls in a discovery over 20,000
+    samples), and with its arithmetic to the bit: each entry gets one addition per
+    block, every block's first segment before any block's second."""
+    n_blocks = gram.shape[0]
+    for k in range(m):  # a segment is each block's first, then its second: in that order
+        r = p + k * n
+        for b in range(n_blocks):
+            s = first[b] + k
+            for i in range(n):
+                for c in range(p):
+                    coupling[s, i, c] += gram[b, r + i, c]
+                for c in range(n):
+                    diag[s, i, c] += gram[b, r + i, r + c]
+    if m == 2:
+        for b in range(n_blocks):
+            for i in range(n):
+                for c in range(n):
+                    upper[first[b], i, c] += gram[b, p + i, p + n + c]
 
 
 @lru_cache(maxsize=32)
