@@ -104,20 +104,21 @@ class ArrowMatrix:
 
     def add(self, gram, segments):
         """Add Gram blocks (B, P + n m, P + n m) of blocks touching ``segments`` (B, m),
-        m = 1 or consecutive pairs (m = 2). Where the blocks' segments are distinct (as
-        in every addition of the refinement) by one indexed sum, else by ``np.add.at``."""
+        m = 1 or consecutive pairs (m = 2). Where the blocks' segments increase (as in
+        every addition of the refinement) by one compiled loop, else where they are
+        distinct by one indexed sum, else by ``np.add.at``: the same sums to the bit."""
         p, n = self.p, self.n
+        consecutive, increasing = _order(segments)
+        if not consecutive:
+            raise ValueError("ArrowMatrix.add: pairs of segments must be consecutive "
+                             f"(s, s + 1); received {segments[:3].tolist()}...")
         # numpy's own sum: its order of summation depends on the shapes (pairwise where
         # the blocks' axis becomes its inner loop)
         self.border += gram[:, :p, :p].sum(axis=0)
-        first = segments[:, 0]
-        if segments.shape[1] == 2 and not np.all(segments[:, 1] == first + 1):
-            raise ValueError("ArrowMatrix.add: pairs of segments must be consecutive "
-                             f"(s, s + 1); received {segments[:3].tolist()}...")
-        if bool(np.all(np.diff(first) > 0)):  # distinct and in order: one compiled loop
-            _arrow_add(self.coupling, self.diag, self.upper, gram, first.astype(np.intp),
-                       segments.shape[1], p, n)
+        if increasing:  # distinct and in order: one compiled loop
+            _arrow_add(self.coupling, self.diag, self.upper, gram, segments, p, n)
             return
+        first = segments[:, 0]
         distinct = len(np.unique(first)) == len(first)
         add = _add if distinct else np.add.at
         for j in range(segments.shape[1]):
@@ -252,17 +253,30 @@ def _add(target, index, values):
 
 
 @njit(cache=True, nogil=True)
-def _arrow_add(coupling, diag, upper, gram, first, m, p, n):
+def _order(segments):
+    """Whether every row of ``segments`` (B, m) is one segment or two consecutive ones
+    (s, s + 1), and whether the rows' first segments increase strictly."""
+    consecutive, increasing = True, True
+    for b in range(segments.shape[0]):
+        if segments.shape[1] == 2 and segments[b, 1] != segments[b, 0] + 1:
+            consecutive = False
+        if b > 0 and segments[b, 0] <= segments[b - 1, 0]:
+            increasing = False
+    return consecutive, increasing
+
+
+@njit(cache=True, nogil=True)
+def _arrow_add(coupling, diag, upper, gram, segments, p, n):
     """The starts' blocks of :meth:`ArrowMatrix.add` (Gram blocks ``gram`` (B, p + n m,
-    p + n m) whose first segments ``first`` (B,) increase strictly) in one loop, without
-    the array version's small operations (8,000 calls in a discovery over 20,000
-    samples), and with its arithmetic to the bit: each entry gets one addition per
-    block, every block's first segment before any block's second."""
-    n_blocks = gram.shape[0]
+    p + n m) of ``segments`` (B, m) whose first segments increase strictly) in one loop,
+    without the array version's small operations (8,000 calls in a discovery over
+    20,000 samples), and with its arithmetic to the bit: each entry gets one addition
+    per block, every block's first segment before any block's second."""
+    n_blocks, m = segments.shape
     for k in range(m):  # a segment is each block's first, then its second: in that order
         r = p + k * n
         for b in range(n_blocks):
-            s = first[b] + k
+            s = segments[b, 0] + k
             for i in range(n):
                 for c in range(p):
                     coupling[s, i, c] += gram[b, r + i, c]
@@ -272,7 +286,7 @@ def _arrow_add(coupling, diag, upper, gram, first, m, p, n):
         for b in range(n_blocks):
             for i in range(n):
                 for c in range(n):
-                    upper[first[b], i, c] += gram[b, p + i, p + n + c]
+                    upper[segments[b, 0], i, c] += gram[b, p + i, p + n + c]
 
 
 @lru_cache(maxsize=32)
