@@ -4,12 +4,13 @@ flushed to zero on the training thread."""
 from __future__ import annotations
 
 import contextlib
+import sys
 
 import numpy as np
 import torch
 from threadpoolctl import ThreadpoolController
 
-_CONTROLLER: list[ThreadpoolController] = []
+_CONTROLLER: list = []  # [controller, len(sys.modules) when it was made]
 
 
 def one_blas_thread():
@@ -17,13 +18,12 @@ def one_blas_thread():
     block (``threadpoolctl.threadpool_limits(1)``).
 
     ``threadpool_limits`` finds the loaded libraries anew at every call (2.6 ms, four
-    times in a discovery and again in its second process); the controller that finds
-    them is made once, at the first call, and kept. Every library it controls is loaded
-    by ``import latentsindy`` (torch's and scikit-learn's OpenMP, numpy's and scipy's
-    OpenBLAS), so one made later would find the same ones.
+    times a discovery and again in its second process). The controller that finds them
+    is kept, and made again only when modules have been imported since (a library that
+    brings its own thread pool comes with an import).
     """
-    if not _CONTROLLER:
-        _CONTROLLER.append(ThreadpoolController())
+    if not _CONTROLLER or _CONTROLLER[1] != len(sys.modules):
+        _CONTROLLER[:] = [ThreadpoolController(), len(sys.modules)]
     return _CONTROLLER[0].limit(limits=1)
 
 

@@ -85,3 +85,23 @@ def test_one_blas_thread_is_restored_when_the_block_raises():
         assert set(_pool_threads().values()) == {1}
         raise RuntimeError("inside")
     assert _pool_threads() == before
+
+
+def test_the_kept_controller_is_made_again_after_an_import(monkeypatch):
+    """A library imported after the first call may bring a thread pool of its own: the
+    controller is made again once modules have been imported, and only then."""
+    import sys
+    import types
+
+    from latentsindy._core import threads
+
+    with one_blas_thread():
+        pass
+    kept = threads._CONTROLLER[0]
+    with one_blas_thread():
+        pass
+    assert threads._CONTROLLER[0] is kept
+    monkeypatch.setitem(sys.modules, "_a_library_imported_later", types.ModuleType("x"))
+    with one_blas_thread():
+        pass
+    assert threads._CONTROLLER[0] is not kept

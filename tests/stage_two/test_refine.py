@@ -336,10 +336,26 @@ def test_systems_beyond_a_hundred_unknowns_are_held_by_blocks():
 
 def test_arrow_blocks_take_only_consecutive_pairs_of_segments():
     """A block touching two segments that are not neighbours has no place in the arrow:
-    an error that says so, not a wrong matrix."""
+    an error that says so, not a wrong matrix, and the equations are left as they
+    were; so are blocks beyond the last segment and Gram blocks of the wrong shape."""
+    from latentsindy._stage_two.fit.normal_equations import ArrowMatrix
+
     eq = NormalEquations(0, 400, 2)
+    eq.add(np.ones((1, 2, 4)), np.ones((1, 2)), np.array([[0, 1]]))
+    before = (eq.cost, eq.grad.copy(), eq.matrix().diag.copy(), eq.matrix().upper.copy())
     with pytest.raises(ValueError, match="consecutive"):
         eq.add(np.ones((1, 2, 4)), np.ones((1, 2)), np.array([[0, 2]]))
+    with pytest.raises(IndexError, match="segments 399..400 for a matrix of 400"):
+        eq.add(np.ones((1, 2, 4)), np.ones((1, 2)), np.array([[399, 400]]))
+    assert eq.cost == before[0] and np.array_equal(eq.grad, before[1])
+    assert np.array_equal(eq.matrix().diag, before[2])
+    assert np.array_equal(eq.matrix().upper, before[3])
+    arrow = ArrowMatrix.zeros(2, 10, 2)
+    with pytest.raises(ValueError, match=r"expected \(1, 6, 6\)"):
+        arrow.add(np.ones((1, 4, 4)), np.array([[3, 4]]))
+    with pytest.raises(IndexError, match="segments -1..-1"):
+        arrow.add(np.ones((1, 4, 4)), np.array([[-1]]))
+    assert not arrow.toarray().any()
 
 
 def _arrow_add_by_arrays(arrow, gram, segments):
@@ -354,12 +370,12 @@ def _arrow_add_by_arrays(arrow, gram, segments):
         np.add.at(arrow.upper, first, gram[:, p:p + n, p + n:])
 
 
-@pytest.mark.parametrize("ordered", [True, False])
-def test_arrow_blocks_are_added_as_the_array_operations_add_them_to_the_bit(ordered):
-    """The compiled addition of Gram blocks (segments in increasing order) and the
-    general one (any order, repeats) give the array operations' sums bit for bit, on
-    magnitudes spread over 16 decades where any change of order would show; one free
-    coefficient included (numpy sums the border pairwise then)."""
+@pytest.mark.parametrize("order", ["increasing", "shuffled", "repeated"])
+def test_arrow_blocks_are_added_as_the_array_operations_add_them_to_the_bit(order):
+    """The compiled addition of Gram blocks (segments in increasing order), the indexed
+    one (distinct, in any order) and ``np.add.at`` (repeats) give the array operations'
+    sums bit for bit, on magnitudes spread over 16 decades where any change of order
+    would show; one free coefficient included (numpy sums the border pairwise then)."""
     from latentsindy._stage_two.fit.normal_equations import ArrowMatrix
 
     rng = np.random.default_rng(7)
@@ -371,7 +387,9 @@ def test_arrow_blocks_are_added_as_the_array_operations_add_them_to_the_bit(orde
         for _ in range(3):
             n_blocks = int(rng.integers(1, k - m + 2))
             first = np.sort(rng.choice(k - m + 1, n_blocks, replace=False))
-            if not ordered:
+            if order == "shuffled":
+                first = rng.permutation(first)
+            elif order == "repeated":
                 first = rng.permutation(np.concatenate([first, first[:2]]))
             segments = first[:, None] + np.arange(m)[None]
             size = p + n * m

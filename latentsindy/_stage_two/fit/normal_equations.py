@@ -56,6 +56,8 @@ class NormalEquations:
         jac, resid = np.asarray(jac), np.asarray(resid)
         segments = np.asarray(segments)
         gram = np.matmul(jac.transpose(0, 2, 1), jac)  # the BLAS: 7x an einsum's speed
+        if not self.dense:  # first: a block it refuses leaves the equations as they were
+            self.arrow.add(gram, segments)
         grads = np.einsum("brc,br->bc", jac, resid)
         self._grad = None
         self.cost += float(np.sum(resid**2))
@@ -65,8 +67,6 @@ class NormalEquations:
         if self.dense:
             self.where.append(where)
             self.vals.append(gram.ravel())
-        else:
-            self.arrow.add(gram, segments)
 
     @property
     def grad(self):
@@ -108,10 +108,19 @@ class ArrowMatrix:
         every addition of the refinement) by one compiled loop, else where they are
         distinct by one indexed sum, else by ``np.add.at``: the same sums to the bit."""
         p, n = self.p, self.n
-        consecutive, increasing = _order(segments)
+        segments = np.asarray(segments, dtype=np.intp)
+        m = segments.shape[1]
+        if gram.shape != (len(segments), p + n * m, p + n * m):
+            raise ValueError(f"ArrowMatrix.add: Gram blocks of shape {gram.shape} for "
+                             f"{len(segments)} blocks of {m} segment(s); expected "
+                             f"{(len(segments), p + n * m, p + n * m)}.")
+        consecutive, increasing, low, high = _order(segments)
         if not consecutive:
             raise ValueError("ArrowMatrix.add: pairs of segments must be consecutive "
                              f"(s, s + 1); received {segments[:3].tolist()}...")
+        if len(segments) and (low < 0 or high + m > self.k):
+            raise IndexError(f"ArrowMatrix.add: segments {low}..{high + m - 1} for a matrix "
+                             f"of {self.k} segments.")
         # numpy's own sum: its order of summation depends on the shapes (pairwise where
         # the blocks' axis becomes its inner loop)
         self.border += gram[:, :p, :p].sum(axis=0)
@@ -255,14 +264,17 @@ def _add(target, index, values):
 @njit(cache=True, nogil=True)
 def _order(segments):
     """Whether every row of ``segments`` (B, m) is one segment or two consecutive ones
-    (s, s + 1), and whether the rows' first segments increase strictly."""
+    (s, s + 1), whether the rows' first segments increase strictly, and the least and
+    the greatest of them (0 and -1 for no rows)."""
     consecutive, increasing = True, True
+    low, high = (segments[0, 0], segments[0, 0]) if segments.shape[0] else (0, -1)
     for b in range(segments.shape[0]):
         if segments.shape[1] == 2 and segments[b, 1] != segments[b, 0] + 1:
             consecutive = False
         if b > 0 and segments[b, 0] <= segments[b - 1, 0]:
             increasing = False
-    return consecutive, increasing
+        low, high = min(low, segments[b, 0]), max(high, segments[b, 0])
+    return consecutive, increasing, low, high
 
 
 @njit(cache=True, nogil=True)
