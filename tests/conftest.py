@@ -25,12 +25,14 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(autouse=True)
 def fresh_map_pace():
     """The second process's size rule (:data:`latentsindy._core.parallel.FORK_WORTH`)
-    remembers each map's pace in the process: every test begins without that memory,
-    as a fresh process would, so that which maps fork does not depend on the tests
+    remembers each map's pace in the process, and the AR(1) noise reading its last
+    readings: every test begins without either memory, as a fresh process would, so
+    that which maps fork, and which readings are computed, do not depend on the tests
     before it."""
-    from latentsindy._core import parallel
+    from latentsindy._core import coloured, parallel
 
     parallel._SECONDS_PER_ITEM.clear()
+    coloured._READ.clear()  # and without the noise readings kept by content
     yield
     parallel.reap_helpers()
 

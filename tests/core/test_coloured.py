@@ -126,3 +126,25 @@ def test_closed_form_signal_fit_is_the_nonnegative_least_squares(v):
     ref = _signal_fit_by_nnls(v, ms)
     assert phi == ref[2]
     assert (err, level) == pytest.approx(ref[:2], rel=1e-9, abs=1e-12)
+
+
+def test_a_reading_is_kept_by_content_and_given_out_as_a_copy():
+    """The same recordings read again (a copy, or split the same way) give the first
+    reading without computing it again; what is returned can be changed without
+    changing what is kept; another recording, or the same one irregularly sampled, is
+    read afresh."""
+    rng = np.random.default_rng(3)
+    x = _oscillations(2000) + 0.02 * _ar1(rng, 2000, 2, 0.9)
+    first = ar1_noise(x)
+    assert first[1][0] > 0  # read as coloured: a reading worth keeping
+    kept = len(coloured._READ)
+    first[0][0], first[1][0] = None, -1.0  # the caller's copies
+    again = ar1_noise(x.copy())
+    assert len(coloured._READ) == kept
+    coloured._READ.clear()
+    fresh = ar1_noise(x)
+    assert again[0] == fresh[0] and np.array_equal(again[1], fresh[1])
+    ar1_noise(x[:-1])
+    assert len(coloured._READ) == 2
+    irregular = np.sort(rng.uniform(0, 100, 2000))
+    assert np.array_equal(ar1_noise(x, irregular)[1], np.zeros(2))  # white: not uniform
