@@ -188,9 +188,14 @@ def _edge_window(window):
 
 
 def _edge_profile(n, window, dt):
-    """Per-sample white-noise gain of :func:`_savgol_derivative` (larger at the edges)."""
+    """Per-sample white-noise gain of :func:`_savgol_derivative` (larger at the edges).
+
+    The first ``window`` outputs see the first ``window + window // 2`` samples only
+    (the tail's edge fit, ``window // 2`` from the end, stays clear of them), so the
+    impulses are differentiated as a series of ``k + window`` samples, not ``n``: the
+    same numbers (20,000 samples, window 81: 0.13 -> 0.006 s)."""
     k = min(n, 2 * window)
-    impulses = np.zeros((n, k))
+    impulses = np.zeros((min(n, k + window), k))
     impulses[np.arange(k), np.arange(k)] = 1.0
     head = np.sum(_savgol_derivative(impulses, window, dt)[:window] ** 2, axis=1)
     interior = np.sum(savgol_coeffs(window, _POLYORDER, deriv=1, delta=dt) ** 2)

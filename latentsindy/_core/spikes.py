@@ -93,11 +93,20 @@ def _local_spread(r):
     if n <= WINDOW:
         return np.full(n, whole)
     half = WINDOW // 2
-    windows = np.lib.stride_tricks.sliding_window_view(np.abs(r), WINDOW)
-    med = 1.4826 * np.median(windows, axis=1)
+    size = np.abs(r)
+    bar = LOCAL * whole
+    # a window's median exceeds the bar only where half its samples do (a margin far
+    # above rounding): only those windows are sorted, the others keep the whole spread
+    # (white noise: none of them; 20,000 samples took 0.03 s to sort every window)
+    above = np.concatenate([[0], np.cumsum(size > bar / 1.4826 * (1.0 - 1e-9))])
+    sort = np.flatnonzero(above[WINDOW:] - above[:-WINDOW] >= (WINDOW + 1) // 2)
+    med = np.zeros(n - WINDOW + 1)
+    if len(sort):
+        windows = np.lib.stride_tricks.sliding_window_view(size, WINDOW)
+        med[sort] = 1.4826 * np.median(windows[sort], axis=1)
     local = np.concatenate([np.full(half, med[0]), med,
                             np.full(n - len(med) - half, med[-1])])
-    return np.where(local > LOCAL * whole, local, whole)
+    return np.where(local > bar, local, whole)
 
 
 def _residuals(x, w, gain):

@@ -6,6 +6,8 @@ import pytest
 from latentsindy._core import local_fits
 from latentsindy._core.derivatives import (
     AdaptiveSavitzkyGolay,
+    _edge_profile,
+    _savgol_derivative,
     measurement_noise,
     noise_level,
     rate,
@@ -147,3 +149,15 @@ def test_the_rate_alone_is_the_methods_derivative_to_the_bit(irregular):
     got, windows = rate(x, t)
     assert np.array_equal(got, want) and windows == method.windows_
     assert min(windows) > 5  # noisy data: windows wider than the smallest
+
+
+@pytest.mark.parametrize(("n", "window"), [(7, 7), (30, 9), (61, 21), (200, 41), (301, 81)])
+def test_noise_gain_along_the_series_is_every_impulses_response(n, window):
+    """The derivative's white-noise gain per sample (``noise_profile_``'s shape) is the
+    sum of squares of its response to a unit impulse at every sample: built here from
+    all ``n`` impulses, which the profile reads from the first ``3 window`` only."""
+    dt = 0.37
+    response = _savgol_derivative(np.eye(n), window, dt)
+    assert np.allclose(_edge_profile(n, window, dt), np.sum(response ** 2, axis=1),
+                       rtol=1e-12, atol=0)
+    assert _edge_profile(n, window, dt)[0] > 1.5 * _edge_profile(n, window, dt)[n // 2]

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from latentsindy._core import recordings
-from latentsindy._core.spikes import discount
+from latentsindy._core.spikes import LOCAL, WINDOW, _local_spread, discount
 
 
 def curve(t):
@@ -94,3 +94,22 @@ def test_split_lists_the_discounted_samples_and_keep_keeps_them():
     with pytest.raises(ValueError, match=r"outliers must be one of \('discount', 'keep'\); "
                                          r"got 'drop'"):
         recordings.split(x, t, outliers="drop")
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_local_spread_is_every_windows_median_where_it_stands_out(seed):
+    """Only windows where half the samples exceed the bar are sorted; the spread is
+    still, sample for sample, the definition's: the median of every window of
+    ``WINDOW`` samples where it is over ``LOCAL`` times the whole series', else the
+    whole series'. Residuals whose level varies 50-fold (some windows over the bar,
+    most not), with ties."""
+    rng = np.random.default_rng(seed)
+    n = 1500
+    r = np.round(3 * rng.standard_normal(n)) / 3 * np.exp(2 * np.sin(np.linspace(0, 9, n)))
+    whole = 1.4826 * np.median(np.abs(r))
+    windows = np.lib.stride_tricks.sliding_window_view(np.abs(r), WINDOW)
+    med = 1.4826 * np.median(windows, axis=1)
+    local = np.concatenate([np.full(WINDOW // 2, med[0]), med, np.full(WINDOW // 2, med[-1])])
+    want = np.where(local > LOCAL * whole, local, whole)
+    assert 0.1 < np.mean(want > whole) < 0.9
+    np.testing.assert_array_equal(_local_spread(r), want)
