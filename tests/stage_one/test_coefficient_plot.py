@@ -62,3 +62,30 @@ def test_a_series_made_from_samples_it_owns_is_the_copying_ones():
     for name in ("times", "mean", "std", "samples", "noise_across_samples",
                  "noise_around_smooth_mean", "lower", "upper"):
         assert np.array_equal(getattr(given, name), getattr(copied, name)), name
+
+
+@pytest.mark.parametrize("shape", [(64, 2000, 1, 9), (8, 600, 2, 10), (3, 50, 1, 2),
+                                   (5, 300, 1, 1), (4, 1, 2, 3)])
+def test_noise_around_the_smooth_mean_is_numpys_std_to_the_bit(shape):
+    """The second noise estimate (std over time of each sample about its smoothed self,
+    averaged over samples) is numpy's ``std(axis=1)`` of the difference in every digit,
+    for one term or many; white noise of level 0.3 about a slow curve reads 0.3."""
+    from scipy.ndimage import uniform_filter1d
+
+    from latentsindy._stage_one.coefficients import _spread_around
+
+    rng = np.random.default_rng(sum(shape))
+    t = np.linspace(0.0, 1.0, shape[1])
+    curve = np.sin(2 * np.pi * t)[None, :, None, None]
+    samples = curve + 0.3 * rng.standard_normal(shape)
+    series = CoefficientSeries.from_samples(t, samples.mean(axis=0), samples,
+                                            [f"s{i}" for i in range(shape[2])],
+                                            [f"f{j}" for j in range(shape[3])],
+                                            np.ones(shape[2:], bool), np.ones(shape[2:], bool))
+    width = max(5, (shape[1] // 50) | 1)
+    smooth = uniform_filter1d(samples, size=width, axis=1, mode="nearest")
+    want = (samples - smooth).std(axis=1)
+    assert np.array_equal(_spread_around(samples, smooth), want)
+    assert np.array_equal(series.noise_around_smooth_mean, want.mean(axis=0))
+    if shape[1] >= 600:  # the smoother's own share of the noise is small
+        np.testing.assert_allclose(series.noise_around_smooth_mean, 0.3, rtol=0.1)
