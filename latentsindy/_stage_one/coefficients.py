@@ -246,23 +246,23 @@ class CoefficientSeries:
 
 
 def _spread_around(samples, smooth):
-    """``(samples - smooth).std(axis=1)``, numpy's numbers without its temporaries:
-    with more than one term numpy sums along time one sample after the other (the terms
-    are its inner loop), as the kernel does; with one term it sums pairwise, and is used
-    (64 samples of 20,000 times of 9 terms: 0.17 -> 0.01 s)."""
-    n_samples, n_times = samples.shape[:2]
-    terms = int(np.prod(samples.shape[2:]))
-    if (terms < 2 or n_times < 1 or samples.dtype != np.float64
-            or smooth.dtype != np.float64 or smooth.shape != samples.shape):
-        return (samples - smooth).std(axis=1)
-    flat = (np.ascontiguousarray(a).reshape(n_samples, n_times, terms)
-            for a in (samples, smooth))
-    return _std_along_time(*flat).reshape((n_samples, *samples.shape[2:]))
+    """``(samples - smooth).std(axis=1)``, numpy's numbers without its temporaries.
+    Where the difference is laid out in C order with more than one term, numpy sums
+    along time one time after the other (the terms are its inner loop), as the kernel
+    does; otherwise (one term, or time innermost) it sums pairwise, and numpy is used
+    (64 samples of 20,000 times of 9 terms: 0.17 -> 0.05 s)."""
+    diff = samples - smooth
+    n_samples, n_times = diff.shape[:2]
+    if (diff.dtype != np.float64 or not diff.flags.c_contiguous or n_times < 1
+            or int(np.prod(diff.shape[2:])) < 2):
+        return diff.std(axis=1)
+    flat = diff.reshape(n_samples, n_times, -1)
+    return _std_along_time(flat).reshape((n_samples, *diff.shape[2:]))
 
 
 @njit(cache=True, nogil=True)
-def _std_along_time(a, b):
-    """The standard deviation over axis 1 of ``a - b`` (S, T, R): mean, then the mean
+def _std_along_time(a):
+    """The standard deviation over axis 1 of ``a`` (S, T, R): mean, then the mean
     square about it, each summed in time order."""
     n_samples, n_times, terms = a.shape
     out = np.empty((n_samples, terms))
@@ -270,12 +270,12 @@ def _std_along_time(a, b):
         total = np.zeros(terms)
         for t in range(n_times):
             for r in range(terms):
-                total[r] += a[s, t, r] - b[s, t, r]
+                total[r] += a[s, t, r]
         mean = total / n_times
         square = np.zeros(terms)
         for t in range(n_times):
             for r in range(terms):
-                d = (a[s, t, r] - b[s, t, r]) - mean[r]
+                d = a[s, t, r] - mean[r]
                 square[r] += d * d
         for r in range(terms):
             out[s, r] = np.sqrt(square[r] / n_times)

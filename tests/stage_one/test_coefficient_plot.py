@@ -64,12 +64,14 @@ def test_a_series_made_from_samples_it_owns_is_the_copying_ones():
         assert np.array_equal(getattr(given, name), getattr(copied, name)), name
 
 
+@pytest.mark.parametrize("time_inner", [False, True])
 @pytest.mark.parametrize("shape", [(64, 2000, 1, 9), (8, 600, 2, 10), (3, 50, 1, 2),
                                    (5, 300, 1, 1), (4, 1, 2, 3)])
-def test_noise_around_the_smooth_mean_is_numpys_std_to_the_bit(shape):
+def test_noise_around_the_smooth_mean_is_numpys_std_to_the_bit(shape, time_inner):
     """The second noise estimate (std over time of each sample about its smoothed self,
     averaged over samples) is numpy's ``std(axis=1)`` of the difference in every digit,
-    for one term or many; white noise of level 0.3 about a slow curve reads 0.3."""
+    for one term or many, samples laid out in C order or with time innermost (as the
+    generator's series come); white noise of level 0.3 about a slow curve reads 0.3."""
     from scipy.ndimage import uniform_filter1d
 
     from latentsindy._stage_one.coefficients import _spread_around
@@ -78,6 +80,8 @@ def test_noise_around_the_smooth_mean_is_numpys_std_to_the_bit(shape):
     t = np.linspace(0.0, 1.0, shape[1])
     curve = np.sin(2 * np.pi * t)[None, :, None, None]
     samples = curve + 0.3 * rng.standard_normal(shape)
+    if time_inner:
+        samples = np.moveaxis(np.ascontiguousarray(np.moveaxis(samples, 1, -1)), -1, 1)
     series = CoefficientSeries.from_samples(t, samples.mean(axis=0), samples,
                                             [f"s{i}" for i in range(shape[2])],
                                             [f"f{j}" for j in range(shape[3])],
