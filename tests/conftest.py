@@ -26,13 +26,15 @@ def pytest_collection_modifyitems(config, items):
 def fresh_map_pace():
     """The second process's size rule (:data:`latentsindy._core.parallel.FORK_WORTH`)
     remembers each map's pace in the process, and the AR(1) noise reading its last
-    readings: every test begins without either memory, as a fresh process would, so
-    that which maps fork, and which readings are computed, do not depend on the tests
-    before it."""
+    readings, and the smoother its last weighted integrals: every test begins without
+    these memories, as a fresh process would, so that which maps fork, and what is
+    computed afresh, do not depend on the tests before it."""
     from latentsindy._core import coloured, parallel
+    from latentsindy._stage_two.propose import smoother
 
     parallel._SECONDS_PER_ITEM.clear()
     coloured._READ.clear()  # and without the noise readings kept by content
+    smoother._PRODUCTS.clear()  # nor the smoother's weighted integrals
     yield
     parallel.reap_helpers()
 

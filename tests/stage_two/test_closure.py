@@ -7,6 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pysindy as ps
 import pytest
+import scipy.sparse as sps
 import sympy as sp
 from scipy.integrate import solve_ivp
 
@@ -167,7 +168,6 @@ def test_the_smoothers_scaled_solve_is_the_products_formulation(missing_diagonal
     for bit, as ``diags(d) @ M @ diags(d) + 1e-10 I`` built as sparse products (with a
     column of zeros, whose diagonal entry is not stored, too), and the solution of the
     ridged system."""
-    import scipy.sparse as sps
     from scipy.sparse.linalg import spsolve
 
     rng = np.random.default_rng(0)
@@ -222,6 +222,37 @@ def test_the_smoothers_operators_are_made_once_per_sampling(monkeypatch):
     fit_hidden(st, [x], [x], [data.t], _sigma(x), 3)
     fit_hidden(st, [x[:500]], [x[:500]], [data.t[:500]], _sigma(x), 2)
     assert len(smoother._OPERATORS) == smoother._KEEP
+
+
+def test_the_smoothers_weighted_integrals_are_made_once_per_weights():
+    """A second structure whose hidden state loads on the same term with the same weight
+    reuses the weighted integral ``q @ diag(g) @ interp`` (the same object), and the
+    fit is the same to the bit as one made afresh; other weights or other operators get
+    their own product, equal to the sparse products' in every digit; at most
+    ``_KEEP_PRODUCTS`` are held."""
+    data = systems.lotka_volterra(1.0, 0.1, 1.5, 0.075, n_times=600)
+    x = data.x_clean[:, :1]
+    st = single_term(1, 1, 0, 0, np.zeros((1, 1), dtype=bool))
+    first = fit_hidden(st, [x], [x], [data.t], _sigma(x), 2)
+    assert len(smoother._PRODUCTS) == 1
+    (made,) = smoother._PRODUCTS.values()
+    again = fit_hidden(st, [x], [x], [data.t], _sigma(x), 2)
+    assert list(smoother._PRODUCTS.values()) == [made]
+    smoother._PRODUCTS.clear()
+    afresh = fit_hidden(st, [x], [x], [data.t], _sigma(x), 2)
+    assert np.array_equal(first.hidden[0], again.hidden[0])
+    assert np.array_equal(first.hidden[0], afresh.hidden[0])
+    q, _, interp = smoother._operators([data.t], [2])[0]
+    rng = np.random.default_rng(0)
+    for _ in range(smoother._KEEP_PRODUCTS + 2):
+        g = rng.standard_normal(len(data.t))
+        got = smoother._weighted_integral(q, g, interp)
+        want = q @ sps.diags(g) @ interp
+        assert got.shape == want.shape and (got != want).nnz == 0
+        assert smoother._weighted_integral(q, g.copy(), interp) is got
+    assert len(smoother._PRODUCTS) == smoother._KEEP_PRODUCTS
+    other = smoother._operators([data.t[:500]], [2])[0]
+    assert smoother._weighted_integral(other[0], g[:500], other[2]).shape[0] == 500
 
 
 def test_smoother_recovers_a_shared_hidden_state():
