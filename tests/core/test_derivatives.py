@@ -2,9 +2,11 @@
 
 import numpy as np
 import pytest
+from scipy.signal import savgol_coeffs
 
 from latentsindy._core import local_fits
 from latentsindy._core.derivatives import (
+    _POLYORDER,
     AdaptiveSavitzkyGolay,
     _edge_profile,
     _savgol_derivative,
@@ -151,13 +153,22 @@ def test_the_rate_alone_is_the_methods_derivative_to_the_bit(irregular):
     assert min(windows) > 5  # noisy data: windows wider than the smallest
 
 
-@pytest.mark.parametrize(("n", "window"), [(7, 7), (30, 9), (61, 21), (200, 41), (301, 81)])
+@pytest.mark.parametrize(("n", "window"), [(7, 7), (30, 9), (61, 21), (200, 41), (301, 81),
+                                           (400, 31), (1000, 101)])
 def test_noise_gain_along_the_series_is_every_impulses_response(n, window):
     """The derivative's white-noise gain per sample (``noise_profile_``'s shape) is the
-    sum of squares of its response to a unit impulse at every sample: built here from
-    all ``n`` impulses, which the profile reads from the first ``3 window`` only."""
+    sum of squares of its response to a unit impulse at every sample (to rounding), and
+    to the bit what differentiating the first ``2 window`` impulses as a series of all
+    ``n`` samples gives: the profile differentiates them as ``3 window`` samples."""
     dt = 0.37
+    got = _edge_profile(n, window, dt)
     response = _savgol_derivative(np.eye(n), window, dt)
-    assert np.allclose(_edge_profile(n, window, dt), np.sum(response ** 2, axis=1),
-                       rtol=1e-12, atol=0)
-    assert _edge_profile(n, window, dt)[0] > 1.5 * _edge_profile(n, window, dt)[n // 2]
+    assert np.allclose(got, np.sum(response ** 2, axis=1), rtol=1e-12, atol=0)
+    assert got[0] > 1.5 * got[n // 2]
+    k = min(n, 2 * window)  # the whole-series formulation, as the profile was made
+    head = np.sum(_savgol_derivative(np.eye(n)[:, :k], window, dt)[:window] ** 2, axis=1)
+    interior = np.sum(savgol_coeffs(window, _POLYORDER, deriv=1, delta=dt) ** 2)
+    want = np.full(n, interior)
+    want[:window] = np.maximum(head, interior)
+    want[n - window:] = np.maximum(want[n - window:], head[::-1][-min(window, n):])
+    assert np.array_equal(got, want)

@@ -113,3 +113,26 @@ def test_local_spread_is_every_windows_median_where_it_stands_out(seed):
     want = np.where(local > LOCAL * whole, local, whole)
     assert 0.1 < np.mean(want > whole) < 0.9
     np.testing.assert_array_equal(_local_spread(r), want)
+
+
+def test_local_spread_at_the_bar_itself():
+    """Windows whose median residual sits one rounding step above the bar (1.5 times
+    the whole series' spread) read their own spread; at the bar exactly, or with one
+    sample short of half over it, the whole series'."""
+    n, half = 1200, WINDOW // 2
+    r = np.ones(n)
+    at = 1.5  # 1.4826 * 1.5 is the bar exactly: not over it
+    over = np.nextafter(1.5, 2.0)
+    while not 1.4826 * over > LOCAL * 1.4826:  # the first value whose spread is over
+        over = np.nextafter(over, 2.0)
+    r[200:200 + WINDOW] = over  # one window's worth: its middle window is over
+    r[600:600 + WINDOW] = at
+    r[900:900 + half] = over  # one short of half of any window
+    whole = 1.4826 * np.median(np.abs(r))
+    assert whole == 1.4826 and 1.4826 * over > LOCAL * whole >= 1.4826 * at
+    spread = _local_spread(r)
+    assert spread[200 + half] == 1.4826 * over
+    assert np.all(spread[600 - half:600 + WINDOW + half] == whole)
+    assert np.all(spread[850:1000] == whole)
+    centre = np.arange(n)  # windows centred 200..300 hold 51 or more of the block
+    np.testing.assert_array_equal(spread > whole, (centre >= 200) & (centre <= 300))

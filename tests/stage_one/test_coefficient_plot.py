@@ -93,3 +93,23 @@ def test_noise_around_the_smooth_mean_is_numpys_std_to_the_bit(shape, time_inner
     assert np.array_equal(series.noise_around_smooth_mean, want.mean(axis=0))
     if shape[1] >= 600:  # the smoother's own share of the noise is small
         np.testing.assert_allclose(series.noise_around_smooth_mean, 0.3, rtol=0.1)
+
+
+@pytest.mark.parametrize("shape", [(6, 300, 1, 9), (4, 200, 2, 3)])
+def test_a_difference_with_time_innermost_is_left_to_numpy(shape):
+    """Where the samples' difference from their smoothed selves has time as its inner
+    axis numpy sums along it pairwise, which the compiled pass does not: such a
+    difference is numpy's std, to the bit (the generator's series come with time
+    innermost, but their smoothed copy, and so the difference, in C order)."""
+    from latentsindy._stage_one.coefficients import _spread_around
+
+    rng = np.random.default_rng(3)
+
+    def time_inner(a):
+        return np.moveaxis(np.ascontiguousarray(np.moveaxis(a, 1, -1)), -1, 1)
+
+    samples = time_inner(rng.standard_normal(shape) * 1e3 + rng.standard_normal(shape))
+    smooth = time_inner(0.5 * rng.standard_normal(shape))
+    assert not (samples - smooth).flags.c_contiguous
+    want = (samples - smooth).std(axis=1)
+    assert np.array_equal(_spread_around(samples, smooth), want)

@@ -167,10 +167,20 @@ def _operators(times, spacings):
     found = _OPERATORS.get(key)
     if found is None:
         found = [_trajectory_operators(t, s) for t, s in zip(times, spacings, strict=True)]
-        while len(_OPERATORS) >= _KEEP:
-            _OPERATORS.pop(next(iter(_OPERATORS)))
+        _make_room(_OPERATORS, _KEEP)
         _OPERATORS[key] = found
     return found
+
+
+def _make_room(kept: dict, keep: int):
+    """Drop the oldest entries of ``kept`` until fewer than ``keep`` are left; another
+    thread may drop them at the same time (no lock: a helper forked while a thread
+    held one would wait on it forever)."""
+    while len(kept) >= keep:
+        try:
+            kept.pop(next(iter(kept)), None)
+        except (StopIteration, RuntimeError):  # emptied, or changed, meanwhile
+            continue
 
 
 def _trajectory_operators(t, spacing):
@@ -214,24 +224,30 @@ def _knots(n_times, spacing, where=None):
 
 
 # The weighted integrals ``q @ diag(g) @ interp`` of the last few designs, by the
-# operators and the weights' bytes: the proposals fit several structures whose hidden
-# state loads on the same term alone (the same weights g), and on a long recording each
+# operators and the weights: the proposals fit several structures whose hidden state
+# loads on the same term alone (the same weights g), and on a long recording each
 # product is a pass over the integral operator (prey-only LV at 20,000 samples: 8
-# products, 3 distinct, 31 ms each). Shared, never modified.
+# products, 3 distinct, 31 ms each). Kept only while their operators are (an operator
+# of 20,000 samples holds 24 MB), the least recently used dropped first; shared, never
+# modified.
 _PRODUCTS: dict = {}
-_KEEP_PRODUCTS = 8
+_KEEP_PRODUCTS = 32
 
 
 def _weighted_integral(q, g, interp):
     """``q @ sps.diags(g) @ interp``, made once for the same operators and weights."""
-    key = (id(q), id(interp), hashlib.blake2b(np.ascontiguousarray(g).tobytes(),
-                                               digest_size=16).digest())
-    found = _PRODUCTS.get(key)
+    g = np.ascontiguousarray(g)
+    key = (id(q), id(interp), g.dtype.str, g.shape,
+           hashlib.blake2b(g.tobytes(), digest_size=16).digest())
+    found = _PRODUCTS.pop(key, None)
     if found is None or found[0] is not q or found[1] is not interp:
         found = (q, interp, q @ sps.diags(g) @ interp)  # (holding q and interp holds ids)
-        while len(_PRODUCTS) >= _KEEP_PRODUCTS:
-            _PRODUCTS.pop(next(iter(_PRODUCTS)))
-        _PRODUCTS[key] = found
+        held = {id(ops[0]) for entry in list(_OPERATORS.values()) for ops in entry}
+        for old, value in list(_PRODUCTS.items()):
+            if id(value[0]) not in held:
+                _PRODUCTS.pop(old, None)
+        _make_room(_PRODUCTS, _KEEP_PRODUCTS)
+    _PRODUCTS[key] = found  # (again) the most recent
     return found[2]
 
 
