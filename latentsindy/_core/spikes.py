@@ -96,9 +96,9 @@ def _local_spread(r):
     size = np.abs(r)
     bar = LOCAL * whole
     # a window's spread exceeds the bar only where half its samples' do (rounding is
-    # monotone, so the median of the products is the product of the median): only those
-    # windows are sorted, the others keep the whole spread (white noise: none of them;
-    # 20,000 samples took 0.08 s to sort every window)
+    # monotone, so an odd window's median of the products is the product of its median):
+    # only those windows are sorted, the others keep the whole spread (white noise: none
+    # of them; 20,000 samples took 0.08 s to sort every window)
     above = np.concatenate([[0], np.cumsum(1.4826 * size > bar)])
     sort = np.flatnonzero(above[WINDOW:] - above[:-WINDOW] >= (WINDOW + 1) // 2)
     med = np.zeros(n - WINDOW + 1)
