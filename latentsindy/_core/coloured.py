@@ -25,10 +25,10 @@ der Pol, Rossler, Brusselator) at 0-5%, reads as coloured.
 from __future__ import annotations
 
 import functools
-import hashlib
 
 import numpy as np
 
+from .fingerprint import fingerprint
 from .local_fits import is_uniform
 
 M = 8  # spacings 1 .. M of the dilated 4th differences
@@ -49,7 +49,7 @@ def ar1_noise(x, t=None):
     xs = [np.asarray(a, float) for a, tk in zip(xs, ts, strict=True)
           if tk is None or np.ndim(tk) == 0 or is_uniform(tk)]
     n_cols = np.asarray(x[0] if isinstance(x, list | tuple) else x).shape[1]
-    key = (n_cols, *(_fingerprint(a) for a in xs))
+    key = (n_cols, *(fingerprint(a) for a in xs))
     if key not in _READ:
         if len(_READ) >= 32:
             _READ.clear()
@@ -62,12 +62,6 @@ def ar1_noise(x, t=None):
 # recording's noise again and again (every refinement problem of every hypothesis:
 # 25 readings of 11 distinct recordings on prey-only LV over 20,000 samples, 0.14 s)
 _READ: dict = {}
-
-
-def _fingerprint(a: np.ndarray) -> tuple:
-    """An array's shape and a 128-bit digest of its values (0.3 ms a megabyte)."""
-    a = np.ascontiguousarray(a)
-    return a.shape, hashlib.blake2b(a.view(np.uint8), digest_size=16).digest()
 
 
 def _ar1_noise(xs, n_cols):

@@ -17,13 +17,13 @@ in alternation. Everything is sparse: cost and memory grow linearly with the ser
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sps
 from scipy.sparse.linalg import spsolve
 
+from ..._core.fingerprint import fingerprint
 from ..._core.local_fits import positions
 
 _LAMBDAS = np.logspace(-6, 4, 11)  # relative curvature weights searched
@@ -236,9 +236,7 @@ _KEEP_PRODUCTS = 32
 
 def _weighted_integral(q, g, interp):
     """``q @ sps.diags(g) @ interp``, made once for the same operators and weights."""
-    g = np.ascontiguousarray(g)
-    key = (id(q), id(interp), g.dtype.str, g.shape,
-           hashlib.blake2b(g.tobytes(), digest_size=16).digest())
+    key = (id(q), id(interp), *fingerprint(g))
     found = _PRODUCTS.pop(key, None)
     if found is None or found[0] is not q or found[1] is not interp:
         found = (q, interp, q @ sps.diags(g) @ interp)  # (holding q and interp holds ids)
