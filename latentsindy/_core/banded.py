@@ -15,10 +15,15 @@ import numpy as np
 from scipy.linalg.lapack import dpbtrf, dpbtrs
 
 
-def cholesky_upper(ab: np.ndarray) -> np.ndarray:
+def cholesky_upper(ab: np.ndarray, overwrite: bool = False) -> np.ndarray:
     """Upper banded Cholesky factor of the float64 band ``ab`` (scipy's layout); raises
-    ``numpy.linalg.LinAlgError`` where the matrix is not positive definite."""
-    factor, info = dpbtrf(ab, lower=0)
+    ``numpy.linalg.LinAlgError`` where the matrix is not positive definite.
+
+    LAPACK reads the band in Fortran order: a C-ordered band is transposed into a copy
+    first (a third of the factorisation's time on a band 77 wide). With ``overwrite``
+    and a Fortran-ordered float64 ``ab``, the factor is written over ``ab`` itself, with
+    no copy: the same numbers in, the same factor out."""
+    factor, info = dpbtrf(ab, lower=0, overwrite_ab=overwrite)
     if info > 0:
         raise np.linalg.LinAlgError(f"{info}-th leading minor not positive definite")
     if info < 0:

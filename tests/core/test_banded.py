@@ -41,3 +41,17 @@ def test_right_hand_sides_of_another_length_are_refused():
     factor = cholesky_upper(_band(6, 1))
     with pytest.raises(ValueError, match="7 rows for a factor of 6 unknowns"):
         solve_upper(factor, np.ones(7))
+
+
+@pytest.mark.parametrize("n, w", [(1, 0), (50, 3), (700, 24)])
+def test_a_fortran_band_is_factorised_in_place_to_the_same_bits(n, w):
+    """``overwrite`` on a Fortran-ordered band: no copy (the factor is the band's own
+    memory) and the factor of the C-ordered band, bit for bit; without it the band is
+    left as it was."""
+    band = _band(n, w)
+    expected = cholesky_upper(band)
+    np.testing.assert_array_equal(band, _band(n, w))
+    own = np.asfortranarray(band.copy())
+    factor = cholesky_upper(own, overwrite=True)
+    assert np.shares_memory(factor, own)
+    np.testing.assert_array_equal(factor, expected)

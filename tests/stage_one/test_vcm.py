@@ -110,6 +110,34 @@ def test_banded_evidence_equals_the_dense_formula():
     assert value == pytest.approx(dense, rel=1e-9)  # eigenvalue route for the prior
 
 
+
+def test_adaptive_priors_kept_by_roughness_give_the_same_evidence_and_the_dense_log_det():
+    """With per-knot weights: the log-determinant of each varying term's prior
+    (ridge I + rough D2' Q D2) against the dense one, and :meth:`_solve` with the
+    priors kept by (term, roughness) the same to the bit as computing each anew, one
+    entry kept per term and roughness asked for."""
+    t, g, m = _small_problem()
+    model = EquationModel(g, 0.01)
+    st = _Normal(g, (1, 2), (0,))
+    rng = np.random.default_rng(5)
+    weights = [rng.uniform(0.2, 3.0, m - 2), rng.uniform(0.2, 3.0, m - 2)]
+    d2 = np.diff(np.eye(m), 2, axis=0)
+    for q in weights:
+        for rough in (1e-3, 7.0, 2e4):
+            dense = np.linalg.slogdet(model.ridge * np.eye(m) + rough * d2.T @ (q[:, None] * d2))
+            assert dense[0] == 1
+            # the dense matrix is ill-conditioned (ridge ~1e-6 beside rough D2' Q D2)
+            assert model._prior_logdet(q, rough) == pytest.approx(dense[1], rel=1e-8)
+    known = {}
+    for log_rough in ([4.0, 4.0], [2.0, 4.0], [2.0, 5.0], [2.0, 4.0], [3.0, 4.0]):
+        kept = model._solve(st, np.array(log_rough), weights, known=known)
+        anew = model._solve(st, np.array(log_rough), weights)
+        assert kept[0] == anew[0]
+        for a, b in zip(kept[1], anew[1], strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert sorted(known) == [(0, np.exp(2.0)), (0, np.exp(3.0)), (0, np.exp(4.0)),
+                             (1, np.exp(4.0)), (1, np.exp(5.0))]
+
 def _varying_oscillator(noise, n=1500, seed=0):
     """xdot = a(t) y, ydot = -x with a(t) = 1 + 0.5 sin(0.2 t): the exact solution on a
     fine grid (RK4), sampled with noise every 40 fine steps."""
