@@ -163,6 +163,7 @@ class _Normal:
         self.data_band = ab
         self.cross = g.spline_const[:, vi][:, :, ci].reshape(m_knots * v, len(ci))
         self.cc = g.const[np.ix_(ci, ci)]
+        self.with_level: dict = {}  # level -> cc + level I (EquationModel._solve's)
         self.rhs_b = g.spline_y[:, vi].reshape(m_knots * v)
         self.rhs_c = g.const_y[ci]
         # where each varying term's penalty lands in the band flattened in its own
@@ -198,10 +199,19 @@ class EquationModel:
         # record, see structure.side_by_side)
         self.looked = None
 
-    def _penalty_rows(self, q):
-        """The penalty band's diagonals d = 0, 1, 2 (as :class:`_Normal` places them)."""
-        pen = self._uniform if q is None else penalty_band(q, self.g.n_knots)
-        return [pen[2 - d, d:] for d in range(3)]
+    def _penalty_rows(self, weights):
+        """The penalty band's diagonals d = 0, 1, 2 of every varying term (weights
+        ``weights``), laid end to end in the order of :class:`_Normal`'s
+        ``penalty_at``, and the term each value belongs to: ``rough[term] * values`` are
+        the penalties at roughness ``rough``."""
+        rows = []
+        for q in weights:
+            pen = self._uniform if q is None else penalty_band(q, self.g.n_knots)
+            rows += [pen[2 - d, d:] for d in range(3)]
+        values = np.concatenate(rows) if rows else np.zeros(0)
+        term = np.repeat(np.arange(len(weights)), [sum(len(r) for r in rows[3 * a:3 * a + 3])
+                                                   for a in range(len(weights))])
+        return values, term
 
     def _prior_logdet(self, q, rough):
         if q is None:  # uniform weights: the eigenvalues of D2'D2 give it directly
@@ -226,19 +236,19 @@ class EquationModel:
     def _solve(self, st: _Normal, log_rough, weights, rows=None, known=None):
         """Log evidence (noise variance integrated out) and the posterior's pieces;
         None when singular. ``rows``: the weights' penalty diagonals
-        (:meth:`_penalty_rows` of each), where the caller keeps them; ``known``: the
+        (:meth:`_penalty_rows`), where the caller keeps them; ``known``: the
         priors' log-determinants at these weights (:meth:`_known_prior_logdet`), where
         the caller keeps them."""
         g, v = self.g, len(st.varying)
         rough = np.exp(np.clip(np.asarray(log_rough, float), *LOG_ROUGH))
         ab = st.data_band.copy(order="F")  # reshape(-1, order="F") below is a view
         if v:
-            if rows is None:
-                rows = [self._penalty_rows(q) for q in weights]
-            ab.reshape(-1, order="F")[st.penalty_at] += np.concatenate(
-                [rough[a] * row for a in range(v) for row in rows[a]])
+            values, term = self._penalty_rows(weights) if rows is None else rows
+            ab.reshape(-1, order="F")[st.penalty_at] += rough[term] * values
             ab[st.width - 1] += self.ridge
-        cc = st.cc + self.level * np.eye(len(st.constant))
+        cc = st.with_level.get(self.level)  # the constants' block with their prior
+        if cc is None:
+            cc = st.with_level[self.level] = st.cc + self.level * np.eye(len(st.constant))
         logdet, u = 0.0, None
         try:
             if v:
@@ -273,7 +283,7 @@ class EquationModel:
     def _optimise(self, st, weights, x0, known=None):
         """Roughness of every varying term by maximum evidence (``known``: as
         :meth:`_solve`'s)."""
-        rows = [self._penalty_rows(q) for q in weights]  # fixed while roughness moves
+        rows = self._penalty_rows(weights)  # fixed while roughness moves
 
         def objective(z):
             solved = self._solve(st, np.atleast_1d(z), weights, rows, known)
