@@ -52,6 +52,8 @@ def test_a_fortran_band_is_factorised_in_place_to_the_same_bits(n, w):
     expected = cholesky_upper(band)
     np.testing.assert_array_equal(band, _band(n, w))
     own = np.asfortranarray(band.copy())
+    np.testing.assert_array_equal(cholesky_upper(own), expected)
+    np.testing.assert_array_equal(own, band)  # Fortran-ordered, not overwritten either
     factor = cholesky_upper(own, overwrite=True)
     assert np.shares_memory(factor, own)
     np.testing.assert_array_equal(factor, expected)

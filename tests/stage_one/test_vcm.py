@@ -110,7 +110,6 @@ def test_banded_evidence_equals_the_dense_formula():
     assert value == pytest.approx(dense, rel=1e-9)  # eigenvalue route for the prior
 
 
-
 def test_adaptive_priors_kept_by_roughness_give_the_same_evidence_and_the_dense_log_det():
     """With per-knot weights: the log-determinant of each varying term's prior
     (ridge I + rough D2' Q D2) against the dense one, and :meth:`_solve` with the
@@ -137,6 +136,22 @@ def test_adaptive_priors_kept_by_roughness_give_the_same_evidence_and_the_dense_
             np.testing.assert_array_equal(a, b)
     assert sorted(known) == [(0, np.exp(2.0)), (0, np.exp(3.0)), (0, np.exp(4.0)),
                              (1, np.exp(4.0)), (1, np.exp(5.0))]
+
+
+def test_an_adaptive_fit_with_kept_priors_is_the_fit_computing_each_anew(monkeypatch):
+    """The kept priors hold only while the weights are fixed: an adaptive fit (five
+    variational steps, each with new weights) is the same to the bit as one that
+    computes every prior anew. Kept across the steps, or used after the last update,
+    they would change its score by up to hundreds of nats."""
+    _, g, _ = _small_problem()
+    kept = EquationModel(g, 0.01).fit((0, 1, 2), (1, 2), adaptive=True)
+    monkeypatch.setattr(EquationModel, "_known_prior_logdet",
+                        lambda self, a, q, rough, known: self._prior_logdet(q, rough))
+    anew = EquationModel(g, 0.01).fit((0, 1, 2), (1, 2), adaptive=True)
+    assert np.isfinite(kept.score) and kept.score == anew.score
+    np.testing.assert_array_equal(kept.log_rough, anew.log_rough)
+    np.testing.assert_array_equal(kept.spline, anew.spline)
+
 
 def _varying_oscillator(noise, n=1500, seed=0):
     """xdot = a(t) y, ydot = -x with a(t) = 1 + 0.5 sin(0.2 t): the exact solution on a
