@@ -199,10 +199,7 @@ class StructureSearch:
                          f"{seconds * len(step):.0f} s")
             begin = time.perf_counter()
             with reserving(seconds):  # max_time: a neighbour starts if it can end in time
-                if seconds * len(step) >= SIDE_BY_SIDE:
-                    near, ran = side_by_side(self, step, adaptive, fit)
-                else:
-                    near, ran = in_turn(self, step, adaptive, fit), 1
+                near, ran = fitted(self, step, adaptive, fit, seconds)
             if near is None:  # max_time ran out during the step: it is not taken
                 passed(_STOPPED)  # (the reserve may have stopped it: spent() says no)
                 return fit, []
@@ -251,7 +248,8 @@ class StructureSearch:
         if not others or spent(_STOPPED):
             return (*ends[0], None)
         cache = dict(self.model._cache)
-        fits = in_turn(self, [(f.support, f.varying) for f in others], True, None)
+        fits = fitted(self, [(f.support, f.varying) for f in others], True, None,
+                      self.pace[True])[0]
         if fits is None:  # max_time ran out among them: no rival climb
             passed(_STOPPED)
             self.model._cache = cache
@@ -285,9 +283,9 @@ class StructureSearch:
         reduced = self.earned(fit, proposed)
         if reduced is not fit:  # its neighbours, with its priors (max_time: at their pace)
             fit = reduced
-            with reserving(self.pace.get(fit.adaptive, 0.0)):
-                near = [] if spent(_STOPPED) else in_turn(
-                    self, self.neighbours(fit), fit.adaptive, fit)
+            with reserving(seconds := self.pace.get(fit.adaptive, 0.0)):
+                near = [] if spent(_STOPPED) else fitted(
+                    self, self.neighbours(fit), fit.adaptive, fit, seconds)[0]
             if near is None:  # max_time ran out among them
                 passed(_STOPPED)
                 near = []
@@ -309,6 +307,14 @@ def _earns(fit, without):
     by 10%."""
     return (float(np.sum(without.edf)) >= 2.0 * float(np.sum(fit.edf))
             or without.noise_variance >= 1.1 * fit.noise_variance)
+
+
+def fitted(search: StructureSearch, step, adaptive, start, seconds):
+    """``(fits, processes used)``: side by side where two or more structures take
+    ``SIDE_BY_SIDE`` seconds at ``seconds`` each, else in turn; the same fits."""
+    if len(step) > 1 and seconds * len(step) >= SIDE_BY_SIDE:
+        return side_by_side(search, step, adaptive, start)
+    return in_turn(search, step, adaptive, start), 1
 
 
 def in_turn(search: StructureSearch, step, adaptive, start):

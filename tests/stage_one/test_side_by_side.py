@@ -167,3 +167,46 @@ def test_a_step_the_budget_runs_out_in_is_not_taken(tmp_path):
     assert len(calls.read_text().split()) < len(step)  # the last one not begun
     assert list(search._cache) == ["before"]
     assert spent.passed == []  # the climb records what was left out, not the step
+
+
+def test_the_steps_outside_the_climbs_side_by_side_are_the_loops(monkeypatch):
+    """The neighbours of a structure reduced by ``earned`` and the rival optima's
+    adaptive fits go side by side too (``fitted``), with the loop's fits and cache."""
+    from latentsindy._stage_one.structure import StructureSearch
+
+    t, x, theta = oscillator()
+    scale = np.sqrt(np.mean(np.gradient(x, t, axis=0) ** 2, axis=0))
+    steps = []
+    real = structure.fitted
+
+    def counted(*args):
+        fits, ran = real(*args)
+        steps.append((sys._getframe(1).f_code.co_name, len(args[1]), ran))
+        return fits, ran
+
+    def search():
+        vc = VaryingCoefficients([x], [t], [theta], scale, 0.01 * x.std(axis=0))
+        s = StructureSearch(vc.models[0], vc.basis, 0.05, True, {0, 1, 2}, set(range(5)))
+        reduced = s.admissible({0, 2}, {0}, True)
+        monkeypatch.setattr(s, "earned", lambda fit, proposed: reduced)
+        found = [s.admissible(*start, False) for start in (  # four Gaussian optima
+            [{0, 2}, {0}], [{2}, {2}], [{2}, set()], [{2, 3}, {3}])]
+        rivals = s._adaptive_climbs(max(found, key=structure.penalised), found)
+        return s.run([({2}, {2})]), rivals, s.model._cache, len(s.neighbours(reduced))
+
+    monkeypatch.setattr(structure, "SIDE_BY_SIDE", 0.0)
+    monkeypatch.setattr(structure, "fitted", counted)
+    both = search()
+    assert ("_adaptive_climbs", 3, 2) in steps  # the Gaussian best's three rivals
+    assert ("run", both[3], 2) in steps  # the reduced structure's neighbours
+    previous = parallel.enable(False)
+    try:
+        alone = search()
+    finally:
+        parallel.enable(previous)
+    assert [(r.support, r.varying, r.score) for r in both[0].rivals] == [
+        (r.support, r.varying, r.score) for r in alone[0].rivals]
+    assert [f.score for f in [both[1][0], *both[1][1]]] == [
+        f.score for f in [alone[1][0], *alone[1][1]]]
+    assert list(both[2]) == list(alone[2])
+    assert [f.score for f in both[2].values()] == [f.score for f in alone[2].values()]
