@@ -199,7 +199,7 @@ class StructureSearch:
                          f"{seconds * len(step):.0f} s")
             begin = time.perf_counter()
             with reserving(seconds):  # max_time: a neighbour starts if it can end in time
-                near, ran = fitted(self, step, adaptive, fit, seconds)
+                near, ran = fit_structures(self, step, adaptive, fit, seconds)
             if near is None:  # max_time ran out during the step: it is not taken
                 passed(_STOPPED)  # (the reserve may have stopped it: spent() says no)
                 return fit, []
@@ -248,8 +248,8 @@ class StructureSearch:
         if not others or spent(_STOPPED):
             return (*ends[0], None)
         cache = dict(self.model._cache)
-        fits = fitted(self, [(f.support, f.varying) for f in others], True, None,
-                      self.pace[True])[0]
+        fits = fit_structures(self, [(f.support, f.varying) for f in others], True,
+                              None, self.pace[True])[0]
         if fits is None:  # max_time ran out among them: no rival climb
             passed(_STOPPED)
             self.model._cache = cache
@@ -284,7 +284,7 @@ class StructureSearch:
         if reduced is not fit:  # its neighbours, with its priors (max_time: at their pace)
             fit = reduced
             with reserving(seconds := self.pace.get(fit.adaptive, 0.0)):
-                near = [] if spent(_STOPPED) else fitted(
+                near = [] if spent(_STOPPED) else fit_structures(
                     self, self.neighbours(fit), fit.adaptive, fit, seconds)[0]
             if near is None:  # max_time ran out among them
                 passed(_STOPPED)
@@ -309,7 +309,7 @@ def _earns(fit, without):
             or without.noise_variance >= 1.1 * fit.noise_variance)
 
 
-def fitted(search: StructureSearch, step, adaptive, start, seconds):
+def fit_structures(search: StructureSearch, step, adaptive, start, seconds):
     """``(fits, processes used)``: side by side where two or more structures take
     ``SIDE_BY_SIDE`` seconds at ``seconds`` each, else in turn; the same fits."""
     if len(step) > 1 and seconds * len(step) >= SIDE_BY_SIDE:

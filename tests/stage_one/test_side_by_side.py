@@ -170,43 +170,60 @@ def test_a_step_the_budget_runs_out_in_is_not_taken(tmp_path):
 
 
 def test_the_steps_outside_the_climbs_side_by_side_are_the_loops(monkeypatch):
-    """The neighbours of a structure reduced by ``earned`` and the rival optima's
-    adaptive fits go side by side too (``fitted``), with the loop's fits and cache."""
+    """The rival optima's adaptive fits and the neighbours of a structure reduced by
+    ``earned`` go side by side too (``fit_structures``), with the loop's fits (new
+    ones: each search starts afresh) and cache."""
     from latentsindy._stage_one.structure import StructureSearch
 
     t, x, theta = oscillator()
     scale = np.sqrt(np.mean(np.gradient(x, t, axis=0) ** 2, axis=0))
     steps = []
-    real = structure.fitted
+    real = structure.fit_structures
 
-    def counted(*args):
-        fits, ran = real(*args)
-        steps.append((sys._getframe(1).f_code.co_name, len(args[1]), ran))
+    def counted(search, step, *rest):
+        new = sum(not search.model.fitted(s, v, rest[0]) for s, v in step)
+        fits, ran = real(search, step, *rest)
+        steps.append((sys._getframe(1).f_code.co_name, len(step), new, ran,
+                      [(f.support, f.varying, f.adaptive, f.score, tuple(f.log_rough))
+                       for f in fits]))
         return fits, ran
 
-    def search():
+    def fresh():
         vc = VaryingCoefficients([x], [t], [theta], scale, 0.01 * x.std(axis=0))
-        s = StructureSearch(vc.models[0], vc.basis, 0.05, True, {0, 1, 2}, set(range(5)))
-        reduced = s.admissible({0, 2}, {0}, True)
-        monkeypatch.setattr(s, "earned", lambda fit, proposed: reduced)
+        return StructureSearch(vc.models[0], vc.basis, 0.05, True, {0, 1, 2}, set(range(5)))
+
+    def searches():
+        s = fresh()
         found = [s.admissible(*start, False) for start in (  # four Gaussian optima
             [{0, 2}, {0}], [{2}, {2}], [{2}, set()], [{2, 3}, {3}])]
-        rivals = s._adaptive_climbs(max(found, key=structure.penalised), found)
-        return s.run([({2}, {2})]), rivals, s.model._cache, len(s.neighbours(reduced))
+        s._adaptive_climbs(max(found, key=structure.penalised), found)
+        s = fresh()  # the reduced structure's neighbours not fitted yet
+        reduced = s.admissible({0, 2}, {0}, True)
+        monkeypatch.setattr(s, "climb", lambda fit, adaptive: (fit, []))
+        monkeypatch.setattr(s, "earned", lambda fit, proposed: reduced)
+        s.pace[True] = 1.0
+        choice = s.run([({2}, {2})])
+        return choice, s.model._cache, len(s.neighbours(reduced))
 
     monkeypatch.setattr(structure, "SIDE_BY_SIDE", 0.0)
-    monkeypatch.setattr(structure, "fitted", counted)
-    both = search()
-    assert ("_adaptive_climbs", 3, 2) in steps  # the Gaussian best's three rivals
-    assert ("run", both[3], 2) in steps  # the reduced structure's neighbours
+    monkeypatch.setattr(structure, "fit_structures", counted)
+    choice, cache, n_near = searches()
+    both = [step for step in steps if step[0] != "climb"]
+    assert [step[:4] for step in both] == [
+        ("_adaptive_climbs", 3, 2, 2),  # the Gaussian best's three rivals, two new
+        ("run", n_near, n_near, 2)]  # the reduced structure's neighbours, all new
+    # with the reduced structure's adaptive priors (where something varies)
+    assert all(adaptive for _, varying, adaptive, *_ in both[1][4] if varying)
+    steps.clear()
     previous = parallel.enable(False)
     try:
-        alone = search()
+        alone_choice, alone_cache, _ = searches()
     finally:
         parallel.enable(previous)
-    assert [(r.support, r.varying, r.score) for r in both[0].rivals] == [
-        (r.support, r.varying, r.score) for r in alone[0].rivals]
-    assert [f.score for f in [both[1][0], *both[1][1]]] == [
-        f.score for f in [alone[1][0], *alone[1][1]]]
-    assert list(both[2]) == list(alone[2])
-    assert [f.score for f in both[2].values()] == [f.score for f in alone[2].values()]
+    alone = [step for step in steps if step[0] != "climb"]
+    assert [step[3] for step in alone] == [1, 1]
+    assert [step[4] for step in both] == [step[4] for step in alone]  # the same fits
+    assert [(r.support, r.varying, r.score) for r in choice.rivals] == [
+        (r.support, r.varying, r.score) for r in alone_choice.rivals]
+    assert list(cache) == list(alone_cache)
+    assert [f.score for f in cache.values()] == [f.score for f in alone_cache.values()]
