@@ -209,8 +209,8 @@ class EquationModel:
             pen = self._uniform if q is None else penalty_band(q, self.g.n_knots)
             rows += [pen[2 - d, d:] for d in range(3)]
         values = np.concatenate(rows) if rows else np.zeros(0)
-        term = np.repeat(np.arange(len(weights)), [sum(len(r) for r in rows[3 * a:3 * a + 3])
-                                                   for a in range(len(weights))])
+        # diagonals of m, m - 1 and m - 2 entries (m knots) for each term
+        term = np.repeat(np.arange(len(weights)), 3 * self.g.n_knots - 3)
         return values, term
 
     def _prior_logdet(self, q, rough):
