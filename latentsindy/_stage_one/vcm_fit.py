@@ -29,7 +29,8 @@ from scipy.linalg import eig_banded
 from scipy.optimize import minimize, minimize_scalar
 from scipy.special import digamma, gammaln
 
-from .._core.banded import cholesky_upper, solve_upper
+from .._core._band_kernels import penalised
+from .._core.banded import cholesky_solve, cholesky_upper
 from .vcm import ORDER, EquationGram
 from .vcm_spread import NoSpread, Spread, covariance, penalty_band
 
@@ -165,6 +166,9 @@ class _Normal:
         self.cc = g.const[np.ix_(ci, ci)]
         self.with_level: dict = {}  # level -> cc + level I (EquationModel._solve's)
         self.rhs_b = g.spline_y[:, vi].reshape(m_knots * v)
+        # both right-hand sides of a solve, solved in one pass (the varying terms' own
+        # first, then the constants' coupling): each column as it would be alone
+        self.rhs_both = np.column_stack([self.rhs_b, self.cross])
         self.rhs_c = g.const_y[ci]
         # where each varying term's penalty lands in the band flattened in its own
         # (Fortran) order, row + column * width: term a's diagonals d = 0, 1, 2 in
@@ -241,21 +245,19 @@ class EquationModel:
         the caller keeps them."""
         g, v = self.g, len(st.varying)
         rough = np.exp(np.clip(np.asarray(log_rough, float), *LOG_ROUGH))
-        ab = st.data_band.copy(order="F")  # reshape(-1, order="F") below is a view
-        if v:
+        if v:  # the data's band plus the penalties (in LAPACK's layout: a Fortran copy)
             values, term = self._penalty_rows(weights) if rows is None else rows
-            ab.reshape(-1, order="F")[st.penalty_at] += rough[term] * values
-            ab[st.width - 1] += self.ridge
+            ab = penalised(st.data_band.reshape(-1, order="F"), st.penalty_at, rough, term,
+                           values, st.width - 1, self.ridge).reshape(st.data_band.shape, order="F")
         cc = st.with_level.get(self.level)  # the constants' block with their prior
         if cc is None:
             cc = st.with_level[self.level] = st.cc + self.level * np.eye(len(st.constant))
         logdet, u = 0.0, None
         try:
             if v:
-                u = cholesky_upper(ab, overwrite=True)  # ab is this call's own copy
+                u, both = cholesky_solve(ab, st.rhs_both, overwrite=True)  # ab: its own
                 logdet += 2.0 * float(np.sum(np.log(u[-1])))
-                sol_b = solve_upper(u, st.rhs_b)
-                proj = solve_upper(u, st.cross)
+                sol_b, proj = both[:, 0], both[:, 1:]
                 schur = cc - st.cross.T @ proj
                 rhs_s = st.rhs_c - st.cross.T @ sol_b
             else:
