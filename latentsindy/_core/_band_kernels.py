@@ -138,8 +138,29 @@ def axpy8(typingctx, y, y_at, alpha, x, x_at, skip):
     return sig, codegen
 
 
-@intrinsic
-def forward_row8(typingctx, u, u_at, rows, at, stride, length, diagonal):
+def _row_sweep(emit):
+    """An intrinsic ``(u, u_at, rows, at, stride, length, diagonal)`` whose IR is
+    ``emit(builder, u_addr, rows_addr, stride, length, diagonal)``, the addresses those
+    of ``u[u_at]`` and ``rows[at]``; its name and docstring are ``emit``'s."""
+    def typer(typingctx, u, u_at, rows, at, stride, length, diagonal):
+        if not _typed((u, rows), (u_at, at, stride, length), (diagonal,)):
+            return None
+        sig = types.void(u, u_at, rows, at, stride, length, diagonal)
+
+        def codegen(context, builder, signature, args):
+            u_arr, u_off, r_arr, r_off, step, n, d = args
+            emit(builder, _pointer(context, builder, signature.args[0], u_arr, u_off),
+                 _pointer(context, builder, signature.args[2], r_arr, r_off), step, n, d)
+            return context.get_dummy_value()
+
+        return sig, codegen
+
+    typer.__name__, typer.__qualname__, typer.__doc__ = emit.__name__, emit.__name__, emit.__doc__
+    return intrinsic(typer)
+
+
+@_row_sweep
+def forward_row8(builder, pu, pr, step, n, d):
     """One row of ``U' y = b`` for eight right-hand sides at once.
 
     ``rows[at + r * stride + c]`` is right-hand side ``c``'s value in row ``i - length +
@@ -150,83 +171,60 @@ def forward_row8(typingctx, u, u_at, rows, at, stride, length, diagonal):
     over 32-blocks, folded to four-wide ones for a last 16-block, then summed across
     accumulators and lanes), the rest one by one. ``length <= 64``.
     """
-    if not _typed((u, rows), (u_at, at, stride, length), (diagonal,)):
-        return None
-    sig = types.void(u, u_at, rows, at, stride, length, diagonal)
+    fma8 = _fma8(builder)
 
-    def codegen(context, builder, signature, args):
-        u_arr, u_off, r_arr, r_off, step, n, d = args
-        pu = _pointer(context, builder, signature.args[0], u_arr, u_off)
-        pr = _pointer(context, builder, signature.args[2], r_arr, r_off)
-        fma8 = _fma8(builder)
+    def row(e):  # the eight right-hand sides' values in row i - length + e
+        return builder.gep(pr, [builder.mul(e, step)])
 
-        def row(e):  # the eight right-hand sides' values in row i - length + e
-            return builder.gep(pr, [builder.mul(e, step)])
+    def product(e, acc):  # fma(u[e], row e, acc), e an IR integer
+        ue = _broadcast(builder, builder.load(builder.gep(pu, [e])))
+        return builder.call(fma8, [ue, _load8(builder, row(e)), acc])
 
-        def product(e, acc):  # fma(u[e], row e, acc), e an IR integer
-            ue = _broadcast(builder, builder.load(builder.gep(pu, [e])))
-            return builder.call(fma8, [ue, _load8(builder, row(e)), acc])
-
-        const = lambda k: ir.Constant(_I64, k)  # noqa: E731
-        n1 = builder.and_(n, const(-16))
-        n32 = builder.and_(n, const(-32))
-        wide = [cgutils.alloca_once_value(builder, _ZERO8) for _ in range(32)]  # lane 8g + l
-        for block in (0, 32):
-            with builder.if_then(builder.icmp_signed(">", n32, const(block))):
-                for lane, slot in enumerate(wide):
-                    builder.store(product(const(block + lane), builder.load(slot)), slot)
-        # fold each eight-wide accumulator into a four-wide one: lane 4g + l
-        narrow = [cgutils.alloca_once_value(builder, builder.fadd(
-            builder.load(wide[8 * g + lane]), builder.load(wide[8 * g + 4 + lane])))
-            for g in range(4) for lane in range(4)]
-        with builder.if_then(builder.icmp_signed("!=", n1, n32)):
-            for lane, slot in enumerate(narrow):
-                e = builder.add(n32, const(lane))
-                builder.store(product(e, builder.load(slot)), slot)
-        acc = [builder.load(slot) for slot in narrow]
-        lanes = [builder.fadd(builder.fadd(builder.fadd(acc[lane], acc[4 + lane]),
-                                           acc[8 + lane]), acc[12 + lane]) for lane in range(4)]
-        kernel = builder.fadd(builder.fadd(lanes[0], lanes[2]), builder.fadd(lanes[1], lanes[3]))
-        dot = cgutils.alloca_once_value(builder, _ZERO8)
-        with builder.if_then(builder.icmp_signed("!=", n1, const(0))):
-            builder.store(kernel, dot)
-        with cgutils.for_range_slice(builder, n1, n, const(1)) as (e, _):
-            builder.store(product(e, builder.load(dot)), dot)
-        last = row(n)
-        value = builder.fdiv(builder.fsub(_load8(builder, last), builder.load(dot)),
-                             _broadcast(builder, d))
-        _store8(builder, value, last)
-        return context.get_dummy_value()
-
-    return sig, codegen
+    const = lambda k: ir.Constant(_I64, k)  # noqa: E731
+    n1 = builder.and_(n, const(-16))
+    n32 = builder.and_(n, const(-32))
+    wide = [cgutils.alloca_once_value(builder, _ZERO8) for _ in range(32)]  # lane 8g + l
+    for block in (0, 32):
+        with builder.if_then(builder.icmp_signed(">", n32, const(block))):
+            for lane, slot in enumerate(wide):
+                builder.store(product(const(block + lane), builder.load(slot)), slot)
+    # fold each eight-wide accumulator into a four-wide one: lane 4g + l
+    narrow = [cgutils.alloca_once_value(builder, builder.fadd(
+        builder.load(wide[8 * g + lane]), builder.load(wide[8 * g + 4 + lane])))
+        for g in range(4) for lane in range(4)]
+    with builder.if_then(builder.icmp_signed("!=", n1, n32)):
+        for lane, slot in enumerate(narrow):
+            e = builder.add(n32, const(lane))
+            builder.store(product(e, builder.load(slot)), slot)
+    acc = [builder.load(slot) for slot in narrow]
+    lanes = [builder.fadd(builder.fadd(builder.fadd(acc[lane], acc[4 + lane]),
+                                       acc[8 + lane]), acc[12 + lane]) for lane in range(4)]
+    kernel = builder.fadd(builder.fadd(lanes[0], lanes[2]), builder.fadd(lanes[1], lanes[3]))
+    dot = cgutils.alloca_once_value(builder, _ZERO8)
+    with builder.if_then(builder.icmp_signed("!=", n1, const(0))):
+        builder.store(kernel, dot)
+    with cgutils.for_range_slice(builder, n1, n, const(1)) as (e, _):
+        builder.store(product(e, builder.load(dot)), dot)
+    last = row(n)
+    value = builder.fdiv(builder.fsub(_load8(builder, last), builder.load(dot)),
+                         _broadcast(builder, d))
+    _store8(builder, value, last)
 
 
-@intrinsic
-def backward_row8(typingctx, u, u_at, rows, at, stride, length, diagonal):
+@_row_sweep
+def backward_row8(builder, pu, pr, step, n, d):
     """One row of ``U x = y`` for eight right-hand sides at once: row ``i`` (at
     ``rows[at + length * stride:]``) becomes ``x_i = y_i / diagonal``, and the ``length``
     rows above it get ``fma(-x_i, u[u_at + e], y)`` (OpenBLAS's ``daxpy``)."""
-    if not _typed((u, rows), (u_at, at, stride, length), (diagonal,)):
-        return None
-    sig = types.void(u, u_at, rows, at, stride, length, diagonal)
-
-    def codegen(context, builder, signature, args):
-        u_arr, u_off, r_arr, r_off, step, n, d = args
-        pu = _pointer(context, builder, signature.args[0], u_arr, u_off)
-        pr = _pointer(context, builder, signature.args[2], r_arr, r_off)
-        last = builder.gep(pr, [builder.mul(n, step)])
-        x = builder.fdiv(_load8(builder, last), _broadcast(builder, d))
-        _store8(builder, x, last)
-        minus = builder.fneg(x)
-        fma8 = _fma8(builder)
-        with cgutils.for_range(builder, n) as loop:
-            e = loop.index
-            target = builder.gep(pr, [builder.mul(e, step)])
-            ue = _broadcast(builder, builder.load(builder.gep(pu, [e])))
-            _store8(builder, builder.call(fma8, [minus, ue, _load8(builder, target)]), target)
-        return context.get_dummy_value()
-
-    return sig, codegen
+    last = builder.gep(pr, [builder.mul(n, step)])
+    x = builder.fdiv(_load8(builder, last), _broadcast(builder, d))
+    _store8(builder, x, last)
+    minus = builder.fneg(x)
+    fma8 = _fma8(builder)
+    with cgutils.for_range(builder, n) as loop:
+        target = builder.gep(pr, [builder.mul(loop.index, step)])
+        ue = _broadcast(builder, builder.load(builder.gep(pu, [loop.index])))
+        _store8(builder, builder.call(fma8, [minus, ue, _load8(builder, target)]), target)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
