@@ -102,20 +102,19 @@ def _broadcast(builder, scalar, width=8):
                                   ir.Constant(ir.VectorType(_I32, width), [0] * width))
 
 
-def _axpy_lanes(builder, y_at, terms, skip):
-    """``y = fma(alpha, x, y)`` for each ``(alpha, x)`` of ``terms`` in turn, on the
-    eight doubles at ``y_at``, lanes ``skip..7`` only."""
-    fma8 = _fma8(builder)
+def _axpy_lanes(builder, y_at, alpha, x_at, skip):
+    """``y = fma(alpha, x, y)`` on the eight doubles at ``y_at``, lanes ``skip..7``
+    only (a masked load and store where ``skip`` is not 0)."""
     with builder.if_else(builder.icmp_signed("==", skip, ir.Constant(_I64, 0))) as (whole, part):
-        for block, mask in ((whole, None), (part, "lanes")):
+        for block, masked in ((whole, False), (part, True)):
             with block:
-                if mask is not None:
+                mask = None
+                if masked:
                     lanes = ir.Constant(ir.VectorType(_I64, 8), list(range(8)))
                     mask = builder.icmp_signed(">=", lanes, _broadcast(builder, skip))
-                value = _load8(builder, y_at, mask)
-                for alpha, x_at in terms:
-                    value = builder.call(fma8, [_broadcast(builder, alpha),
-                                                _load8(builder, x_at, mask), value])
+                value = builder.call(_fma8(builder), [_broadcast(builder, alpha),
+                                                      _load8(builder, x_at, mask),
+                                                      _load8(builder, y_at, mask)])
                 _store8(builder, value, y_at, mask)
 
 
@@ -132,7 +131,7 @@ def axpy8(typingctx, y, y_at, alpha, x, x_at, skip):
         y_arr, y_off, a, x_arr, x_off, n = args
         py = _pointer(context, builder, signature.args[0], y_arr, y_off)
         px = _pointer(context, builder, signature.args[3], x_arr, x_off)
-        _axpy_lanes(builder, py, [(a, px)], n)
+        _axpy_lanes(builder, py, a, px, n)
         return context.get_dummy_value()
 
     return sig, codegen
@@ -283,12 +282,9 @@ def solve_band(band, kd, n, rows, width):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def factor_solve(band, kd, n, rhs, out):
-    """:func:`factor_band` on ``band``, then the right-hand sides ``rhs`` (``n x m``)
-    solved into ``out`` (``n x m``); returns ``info`` (``out`` untouched unless 0)."""
-    info = factor_band(band, kd, n)
-    if info:
-        return info
+def solve_columns(band, kd, n, rhs, out):
+    """:func:`solve_band` of the right-hand sides ``rhs`` (``n x m``, any layout) for
+    the factor ``band``, into ``out`` (``n x m``): eight columns at a time."""
     m = rhs.shape[1]
     width = -(-m // 8) * 8
     rows = np.zeros(n * width)
@@ -299,7 +295,16 @@ def factor_solve(band, kd, n, rhs, out):
     for c in range(m):
         for i in range(n):
             out[i, c] = rows[i * width + c]
-    return 0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def factor_solve(band, kd, n, rhs, out):
+    """:func:`factor_band` on ``band``, then :func:`solve_columns` of ``rhs`` into
+    ``out``; returns ``info`` (``out`` untouched unless 0)."""
+    info = factor_band(band, kd, n)
+    if info == 0:
+        solve_columns(band, kd, n, rhs, out)
+    return info
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

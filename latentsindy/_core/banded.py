@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg.lapack import dpbtrf, dpbtrs
 
-from ._band_kernels import MAX_KD, factor_band, factor_solve, solve_band
+from ._band_kernels import MAX_KD, factor_band, factor_solve, solve_columns
 
 
 def _compiled(ab) -> bool:
@@ -70,14 +70,10 @@ def solve_upper(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
             raise ValueError(f"illegal value in {-info}-th argument of dpbtrs")
         return solution
     factor = np.asarray(factor, dtype=np.float64, order="F")
-    m = 1 if rhs.ndim == 1 else rhs.shape[1]
-    width = -(-m // 8) * 8  # the kernels take right-hand sides eight at a time
-    rows = np.zeros((n, width))
-    rows[:, :m] = rhs.reshape(n, m)
-    solve_band(factor.reshape(-1, order="F"), kd, n, rows.reshape(-1), width)
-    if rhs.ndim == 1:
-        return rows[:, 0].copy()
-    return np.asfortranarray(rows[:, :m])
+    columns = np.asarray(rhs, dtype=np.float64).reshape(n, -1)
+    solution = np.empty(columns.shape, order="F")
+    solve_columns(factor.reshape(-1, order="F"), kd, n, columns, solution)
+    return solution[:, 0].copy() if rhs.ndim == 1 else solution
 
 
 def cholesky_solve(ab: np.ndarray, rhs: np.ndarray, overwrite: bool = False):
