@@ -8,6 +8,41 @@ from concurrent.futures import ProcessPoolExecutor
 from functools import partial
 from pathlib import Path
 
+# the packages whose versions a table's numbers depend on (their BLAS builds included)
+PACKAGES = ("latentsindy", "numpy", "scipy", "numba", "llvmlite", "torch", "pysindy",
+            "scikit-learn")
+
+
+def environment() -> str:
+    """One line naming what a table's numbers depend on besides the commit: Python, the
+    packages' versions, the BLAS libraries loaded and the kernels they chose, the CPU.
+    A discovery turns on near-ties, so a borderline call can end differently under other
+    builds of numpy or scipy (their OpenBLAS) or on another CPU: compare tables made in
+    one environment."""
+    import platform
+    from importlib import metadata
+
+    import scipy.linalg  # noqa: F401 - loads scipy's own BLAS beside numpy's
+    from threadpoolctl import threadpool_info
+
+    versions = []
+    for name in PACKAGES:
+        try:
+            versions.append(f"{name} {metadata.version(name)}")
+        except metadata.PackageNotFoundError:
+            versions.append(f"{name} absent")
+    blas = sorted({f"{i['internal_api']} {i['version']} ({i.get('architecture') or '?'})"
+                   for i in threadpool_info() if i.get("user_api") == "blas"})
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as fh:
+            cpu = next(line.split(":", 1)[1].strip() for line in fh
+                       if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return (f"environment: Python {platform.python_version()}, {', '.join(versions)}; "
+            f"BLAS {'; '.join(blas) or 'unknown'}; CPU {cpu}, {os.cpu_count()} cores")
+
 
 def _single_threaded():
     import torch
@@ -34,6 +69,7 @@ def run_all(run, tasks, report, jobs=1, out=None):
     contention); the rows so far written as JSON to ``out`` after every row when given
     (a run cut short keeps what it measured). Returns the rows."""
     rows = []
+    print(environment(), flush=True)
 
     def keep(row):
         rows.append(row)

@@ -12,6 +12,7 @@ file and its row of ``runs.csv``), so a batch that is stopped keeps what it fini
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -89,7 +90,7 @@ def discover_many(recordings, library=None, *, t, seeds=(0,), n_jobs=1, backend=
     t : float, array, or dict {name: float or array}
         Sample spacing or times, shared or per recording.
     seeds : sequence of int
-        Every recording is run once per seed.
+        Every recording is run once per seed (each seed once).
     n_jobs : int
         Parallel local workers (joblib; -1: one per core).
     backend : str, optional
@@ -100,7 +101,10 @@ def discover_many(recordings, library=None, *, t, seeds=(0,), n_jobs=1, backend=
         worker dies is recorded as failed (``KilledWorker``) once Dask gives up on it.
     out : path, optional
         A folder: every run is written as it finishes, its result as ``NAME.npz``
-        (``NAME_seedS.npz`` with several seeds) and its row appended to ``runs.csv``.
+        (``NAME_seedS.npz`` with several seeds; a name with a path separator is refused)
+        and its row appended to ``runs.csv`` (a table already there is kept and added
+        to: run again into the same folder, the new rows follow the old). A result
+        that cannot be written is that run's error; the batch goes on.
     **options
         Passed to :func:`discover_hidden` (``feature_names``, ``closure_library``, ...).
 
@@ -118,6 +122,12 @@ def discover_many(recordings, library=None, *, t, seeds=(0,), n_jobs=1, backend=
     if missing:
         raise ValueError(f"t has no entry for recording(s) {missing}.")
     seeds = [int(s) for s in np.atleast_1d(seeds)]
+    repeated = sorted({s for s in seeds if seeds.count(s) > 1})
+    if repeated:
+        raise ValueError(f"seeds repeats {repeated}; a seed gives the same run every time, "
+                         "so pass each seed once.")
+    if out is not None:
+        _check_file_names(recordings)
     for key in ("seed", "verbose"):
         if key in options:
             raise TypeError(f"discover_many sets {key!r} itself; use seeds=[...] instead."
@@ -136,9 +146,21 @@ def discover_many(recordings, library=None, *, t, seeds=(0,), n_jobs=1, backend=
                 delayed(_one)(*call, alone=n_jobs == 1) for call in calls))
     for run in runs:
         if write is not None:
-            write(run)
+            run = write(run)
         finished[run.name, run.seed] = run
     return [finished[name, seed] for name, _, _, _, seed, _ in calls]
+
+
+def _check_file_names(recordings) -> None:
+    """With ``out=``, each recording's name is its result's file name: refuse names that
+    are not one (a path separator, nothing, ``.`` or ``..``) before any run starts."""
+    bad = [name for name in recordings
+           if str(name) in ("", ".", "..") or any(c in str(name) for c in "/\\\0")]
+    if bad:
+        fixed = [str(n).replace("/", "_").replace("\\", "_").replace("\0", "") for n in bad]
+        fixed = [n if n not in ("", ".", "..") else "run" for n in fixed]
+        raise ValueError(f"with out=, each recording's name names its result file; {bad} "
+                         f"cannot (a path separator, or no name): rename them, e.g. {fixed}.")
 
 
 def _on_dask(scheduler, calls):
@@ -165,22 +187,40 @@ def _on_dask(scheduler, calls):
 
 
 class _Writer:
-    """Writes each run as it finishes: its result file and its row of ``runs.csv``."""
+    """Writes each run as it finishes: its result file and its row of ``runs.csv``
+    (appended to the folder's table where it has one: a batch run again, or resumed,
+    into the same folder keeps the rows before it)."""
 
     def __init__(self, out, several_seeds: bool):
         self.folder = Path(out)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.several_seeds = several_seeds
-        with open(self.folder / TABLE, "w", newline="") as fh:
+        table = self.folder / TABLE
+        if table.exists() and table.stat().st_size:
+            with open(table, newline="") as fh:
+                header = next(csv.reader(fh), [])
+            if tuple(header) != COLUMNS:
+                raise ValueError(f"{table} is not a table of runs (its header is {header}, "
+                                 f"expected {list(COLUMNS)}); give out= another folder, or "
+                                 "move that file.")
+            return
+        with open(table, "w", newline="") as fh:
             csv.DictWriter(fh, fieldnames=COLUMNS).writeheader()
 
     def path(self, run: Run) -> Path:
         stem = f"{run.name}_seed{run.seed}" if self.several_seeds else run.name
         return self.folder / f"{stem}.npz"
 
-    def __call__(self, run: Run) -> None:
+    def __call__(self, run: Run) -> Run:
+        """Write ``run``; returns it, with the error where its result could not be
+        written (the batch goes on)."""
         if run.result is not None:
-            run.result.save(self.path(run))
+            try:
+                run.result.save(self.path(run))
+            except OSError as err:
+                run = dataclasses.replace(run, error=f"not saved to {self.path(run)}: "
+                                                     f"{type(err).__name__}: {err}")
         with open(self.folder / TABLE, "a", newline="") as fh:
             csv.DictWriter(fh, fieldnames=COLUMNS).writerow(run.row())
+        return run
 

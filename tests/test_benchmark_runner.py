@@ -8,10 +8,23 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from _runner import run_all  # noqa: E402
+from _runner import environment, run_all  # noqa: E402
 
 
-def test_rows_are_written_as_they_finish(tmp_path):
+def test_environment_names_the_versions_and_blas_a_table_depends_on():
+    """A table's borderline calls can move with numpy's or scipy's OpenBLAS build, so
+    every run prints the versions, the BLAS kernels and the CPU it ran on."""
+    import numpy
+    import scipy
+
+    line = environment()
+    assert line.startswith("environment: Python ")
+    assert f"numpy {numpy.__version__}," in line and f"scipy {scipy.__version__}," in line
+    assert "BLAS " in line and "BLAS unknown" not in line  # numpy's and scipy's OpenBLAS
+    assert "CPU " in line
+
+
+def test_rows_are_written_as_they_finish(tmp_path, capsys):
     out = tmp_path / "rows.json"
     on_disk = []
 
@@ -26,6 +39,7 @@ def test_rows_are_written_as_they_finish(tmp_path):
     with pytest.raises(RuntimeError, match="cut short"):
         run_all(crash_on_third, [(0,), (1,), (2,)], report, jobs=1, out=out)
     assert on_disk == [None, [{"case": 0, "value": 0.0}]]
+    assert capsys.readouterr().out.startswith("environment: ")  # before the rows
     assert json.loads(out.read_text()) == [{"case": 0, "value": 0.0}, {"case": 1, "value": 0.25}]
 
 

@@ -109,8 +109,7 @@ def _discover(args) -> int:
     files, batch = _data_files(args.data)
     try:
         val.check_device(args.device)
-        if args.max_time is not None:
-            val.check_positive(args.max_time, "--max-time")
+        args.max_time = val.check_seconds(args.max_time, "--max-time")
     except ValueError as err:
         raise UsageError(str(err)) from None
     if args.scheduler and not batch:

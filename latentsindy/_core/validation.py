@@ -169,17 +169,38 @@ def check_feature_names(names, n_states: int, what: str = "feature_names") -> li
 
 
 def check_positive(value, what: str, *, allow_zero: bool = False, integer: bool = False):
+    """``value`` as a float (an int with ``integer``) that is finite and > 0 (>= 0 with
+    ``allow_zero``); text and booleans are refused, not converted."""
     kind = int if integer else float
+    if isinstance(value, (str, bytes, bool, np.bool_)):
+        raise TypeError(f"{what} must be a number; got {value!r} "
+                        f"({type(value).__name__}).")
     try:
         v = kind(value)
-    except (TypeError, ValueError):
-        raise TypeError(f"{what} must be a number; got {value!r}.") from None
-    if integer and v != value:
+    except (TypeError, ValueError, OverflowError):
+        if not integer or not isinstance(value, (float, np.floating)):
+            raise TypeError(f"{what} must be a number; got {value!r}.") from None
+        v = float(value)  # an infinite or NaN float where an integer is due: said below
+    if integer and v != value and np.isfinite(v):
         raise TypeError(f"{what} must be an integer; got {value!r}.")
-    if not np.isfinite(v) or (v < 0 if allow_zero else v <= 0):
-        bound = ">= 0" if allow_zero else "> 0"
+    bound = ">= 0" if allow_zero else "> 0"
+    if not np.isfinite(v):
+        raise ValueError(f"{what} must be a finite number {bound}; got {value!r}.")
+    if v < 0 if allow_zero else v <= 0:
         raise ValueError(f"{what} must be {bound}; got {value!r}.")
     return v
+
+
+def check_seconds(value, what: str):
+    """A time budget: seconds > 0 as a float, or None for no limit (``None`` or
+    infinity)."""
+    if value is None or (isinstance(value, (float, np.floating)) and value == np.inf):
+        return None
+    try:
+        return check_positive(value, what)
+    except ValueError:
+        raise ValueError(f"{what} must be a number of seconds > 0 (leave it out for no "
+                         f"limit); got {value!r}.") from None
 
 
 def term_mask(spec, states, features, what, *, default, unnamed):

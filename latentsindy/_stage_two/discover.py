@@ -133,19 +133,22 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         level and sharp features of the dynamics, which span several samples, are
         left alone). ``"keep"``: every sample as measured.
     max_time : float, optional
-        Wall seconds for the whole call (default None: no limit). Once they are spent,
-        stage one's structure search fits no further neighbour (the step under way is
-        not taken) and no adaptive priors, no alternative to stage one's own structure
-        is proposed, and stage two starts no further hypothesis, term-selection step or
-        fit iteration: the best system found so far is returned, with the doubt
-        ``"time budget"`` saying what was not judged (so never ``confident``). Stage
-        one's training (a fixed number of steps, seconds on most data, see ``timings``),
-        its starting structures, the chosen structure's posterior and the fit under way
-        always complete (the search keeps the training's second phase in reserve, and the
-        call as much again for the result, whose refitting checks it then leaves out).
-        A call that left nothing out but ended past ``max_time`` has a note saying so,
-        not the doubt. With ``verbose``, progress lines say which step runs and how
-        many remain.
+        Wall seconds for the whole call (default None, or infinity: no limit). Once
+        they are spent, stage one's structure search fits no further neighbour (the
+        step under way is not taken) and no adaptive priors, no alternative to stage
+        one's own structure is proposed, and stage two starts no further hypothesis,
+        term-selection step or fit iteration: the best system found so far is
+        returned, with the doubt ``"time budget"`` saying what was not judged (so never
+        ``confident``). Stage one's training (a fixed number of steps, seconds on most
+        data, see ``timings``), its starting structures, the chosen structure's
+        posterior and the fit under way always complete (the search keeps the
+        training's second phase in reserve, and the call as much again for the result,
+        whose refitting checks it then leaves out). A budget spent inside stage one's
+        structure search (most of a slow call) leaves stage two no time to fit
+        anything: the system returned is then an unchecked candidate, with the doubt
+        ``"not checked"`` too. A call that left nothing out but ended past
+        ``max_time`` has a note saying so, not the doubt. With ``verbose``, progress
+        lines say which step runs and how many remain, and when the budget runs out.
     device : str
         Torch device for stage one's training and the refinement's integrations
         ("cpu", default, or "cuda"). A GPU pays off for long series in stage one; the
@@ -163,8 +166,7 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
                                   generator_options=generator_options, training=training,
                                   differentiation_method=differentiation_method,
                                   support=support)
-    if max_time is not None:
-        max_time = val.check_positive(max_time, "max_time")
+    max_time = val.check_seconds(max_time, "max_time")
     with recording() as seconds, budget(max_time, verbose) as state:
         result = _discover(x_observed, t, feature_names, hidden_terms, hidden_names,
                            closure_library, stage_one, n_samples, refine, gaps, outliers,

@@ -121,6 +121,49 @@ def test_a_failed_run_is_recorded_and_the_others_go_on(recordings):
         discover_many([x, x], LIBRARY, t={"0": t})
 
 
+def test_names_and_seeds_that_cannot_be_kept_apart_are_refused_before_any_run(
+        recordings, tmp_path):
+    t, x = recordings["worm1"]
+    with pytest.raises(ValueError, match=r"\['cell 1/trial a', '\.\.'\] cannot \(a path "
+                       r"separator, or no name\): rename them, e\.g\. \['cell 1_trial a', "
+                       r"'run'\]"):
+        discover_many({"fine": x, "cell 1/trial a": x, "..": x}, LIBRARY, t=t,
+                      out=tmp_path, feature_names=["x"])
+    assert not (tmp_path / "runs.csv").exists()  # nothing ran, nothing written
+    with pytest.raises(ValueError, match=r"seeds repeats \[0\]; .* pass each seed once"):
+        discover_many([x], LIBRARY, t=t, seeds=[0, 1, 0])
+
+
+def test_a_batch_run_again_into_its_folder_adds_to_its_table(recordings, tmp_path):
+    """A batch stopped and run again (or another batch) into the same folder keeps the
+    rows written before; a file of another kind in the table's place is not written
+    over; a result that cannot be written is its run's error, and the batch goes on."""
+    t, x = recordings["worm1"]
+    short = {"short": x[:6]}  # fails at once: a row without a result
+    discover_many(short, LIBRARY, t=t[:6], out=tmp_path, feature_names=["x"])
+    discover_many(short, LIBRARY, t=t[:6], out=tmp_path, feature_names=["x"])
+    with open(tmp_path / "runs.csv") as fh:
+        assert [r["name"] for r in csv.DictReader(fh)] == ["short", "short"]
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "runs.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(ValueError, match=r"runs\.csv is not a table of runs \(its header is "
+                       r"\['a', 'b'\].*give out= another folder"):
+        discover_many(short, LIBRARY, t=t[:6], out=other, feature_names=["x"])
+    assert (other / "runs.csv").read_text() == "a,b\n1,2\n"
+    (tmp_path / "worm1.npz").mkdir()  # where its result would go: cannot be written
+    run, failed = discover_many({"worm1": x, "short": x[:6]}, LIBRARY,
+                                t={"worm1": t, "short": t[:6]}, out=tmp_path,
+                                feature_names=["x"])
+    assert run.result is not None and run.error.startswith(
+        f"not saved to {tmp_path / 'worm1.npz'}: IsADirectoryError")
+    assert failed.error.startswith("ValueError")
+    with open(tmp_path / "runs.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["name"] for r in rows] == ["short", "short", "worm1", "short"]
+    assert rows[2]["error"].startswith("not saved to") and rows[2]["hidden_states"] == "1"
+
+
 def test_command_line_runs_a_folder_into_one_table(recordings, tmp_path, capsys):
     folder = tmp_path / "data"
     folder.mkdir()

@@ -94,7 +94,8 @@ def test_input_problems_are_one_line_and_exit_code_2(lv_csv, tmp_path, capsys):
     _one_line_error(capsys, main([*base[:1], str(lv_csv), *base[1:], "--library", "cubic"]),
                     "library 'cubic' not understood")
     _one_line_error(capsys, main([*base[:1], str(lv_csv), *base[1:], "--max-time", "0"]),
-                    "--max-time must be > 0; got 0.0")
+                    "--max-time must be a number of seconds > 0 (leave it out for no limit); "
+                    "got 0.0")
     _one_line_error(capsys, main(["show", str(garbage)]), "not a latentsindy file")
     _one_line_error(capsys, main(["show", str(lv_csv)]), "not a latentsindy file")
 

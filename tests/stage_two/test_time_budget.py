@@ -19,11 +19,26 @@ def _discover(data, **options):
                            feature_names=["x"], verbose=False, **options)
 
 
-@pytest.mark.parametrize("bad, error", [(0, ValueError), (-1.0, ValueError),
-                                        (float("nan"), ValueError), ("1 s", TypeError)])
-def test_max_time_must_be_a_positive_number(prey, bad, error):
-    with pytest.raises(error, match="max_time must be"):
+@pytest.mark.parametrize("bad, error, says", [
+    (0, ValueError, r"a number of seconds > 0 \(leave it out for no limit\); got 0"),
+    (-1.0, ValueError, "a number of seconds > 0"),
+    (float("nan"), ValueError, "a number of seconds > 0.*got nan"),
+    (-float("inf"), ValueError, "a number of seconds > 0.*got -inf"),
+    ("1 s", TypeError, r"a number; got '1 s' \(str\)"),
+    ("15", TypeError, r"a number; got '15' \(str\)"),  # not read as 15 s
+    (True, TypeError, r"a number; got True \(bool\)"),  # not one second
+])
+def test_max_time_must_be_a_positive_number(prey, bad, error, says):
+    with pytest.raises(error, match="max_time must be " + says):
         _discover(prey, max_time=bad)
+
+
+def test_an_infinite_max_time_is_no_limit():
+    from latentsindy._core import validation
+
+    assert validation.check_seconds(float("inf"), "max_time") is None
+    assert validation.check_seconds(np.float32(2.5), "max_time") == 2.5
+    assert validation.check_seconds(None, "max_time") is None
 
 
 def test_a_budget_spent_before_stage_two_gives_the_unchecked_best_candidate(prey):
@@ -35,8 +50,9 @@ def test_a_budget_spent_before_stage_two_gives_the_unchecked_best_candidate(prey
     assert [d.kind for d in result.doubts] == ["not checked", "time budget"]
     assert "max_time was spent before any candidate" in result.doubts[0]
     left = result.doubts[1]
-    assert "max_time=1e-06 s was spent" in left and "hypotheses not fitted" in left
-    assert "Raise max_time" in left
+    assert "time budget (max_time=1e-06 s) did not allow" in left
+    assert "hypotheses not fitted" in left
+    assert "Raise max_time (--max-time on the command line)" in left
     assert "alternative proposals" in left and "adaptive slope priors" in left
     assert result.terms  # a system all the same
 
@@ -418,6 +434,12 @@ def test_progress_lines_only_when_verbose(capsys):
     assert "] first fit 1 of 3" in capsys.readouterr().err
     with budget.budget(1e-9) as left:
         assert budget.spent("a step") and left.passed == ["a step"]
+    assert capsys.readouterr().err == ""  # quiet: the budget's end not said either
+    with budget.budget(1e-9, verbose=True):  # said once, with the first step left out
+        assert budget.spent("a step") and budget.spent("another")
+    said = capsys.readouterr().err
+    assert said.count("time budget (max_time=1e-09 s) spent") == 1
+    assert "(the first: a step); the best system found so far will be returned" in said
     budget.progress("outside")  # no budget: nothing printed, nothing expires
     budget.passed("anything")
     assert not budget.expired() and capsys.readouterr().err == ""
