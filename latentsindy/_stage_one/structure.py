@@ -32,6 +32,7 @@ uncertain: the band includes them, and they become doubts).
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass
 
@@ -43,8 +44,7 @@ from .._core.threads import single_thread
 from .vcm_fit import EM_STEPS, EquationFit, EquationModel
 
 LOG_PRIOR_ODDS = np.log(20.0)  # price of one more term, or one more varying term
-# A climbing step expected to take this long (seconds, at the last step's pace) has its
-# neighbours fitted by two processes (side_by_side; a fork costs hundredths of a second)
+# A climbing step expected to take this long (s, at the last pace) goes to two processes
 SIDE_BY_SIDE = 0.15
 # A climbing step expected to take this long (seconds) is announced in the progress lines
 ANNOUNCE = 1.0
@@ -189,14 +189,14 @@ class StructureSearch:
         (none where the discovery's ``max_time`` ran out: the ascent stops there)."""
         seconds = self.pace.get(adaptive, 0.0)  # per neighbour, at the last step's pace
         shed = len(fit.varying) > DESCENT
-        while True:
+        for number in itertools.count(1):  # the climb's steps, for the progress lines
             if spent(_STOPPED):
                 return fit, []
             step = self.neighbours(fit, shed)
             if seconds * len(step) >= ANNOUNCE:
-                progress(f"stage one's structure search, {self.label}: {len(step)} "
-                         f"neighbours to fit with {_PRIORS[adaptive]} priors, about "
-                         f"{seconds * len(step):.0f} s")
+                progress(f"stage one's structure search, {self.label}, climbing step "
+                         f"{number}: {len(step)} neighbours to fit with "
+                         f"{_PRIORS[adaptive]} priors, about {seconds * len(step):.0f} s")
             begin = time.perf_counter()
             with reserving(seconds):  # max_time: a neighbour starts if it can end in time
                 near, ran = fit_structures(self, step, adaptive, fit, seconds)

@@ -300,13 +300,14 @@ def _discover(x_observed, t, feature_names, hidden_terms, hidden_names, closure_
         result = dataclasses.replace(result, doubts=(Doubt(
             "not checked", f"none of the {len(proposals)} candidate closed systems could "
             "be fitted by integration (each blew up or failed from its estimated hidden "
-            f"series; varying terms {pairs}): the system shown is the best-closing "
-            "candidate, unchecked. The library may lack the terms that carry the hidden "
-            "state (a constant: include_bias=True), or the closure_library those of its "
-            "law; or the samples are too few per cycle") if not expired() else Doubt(
+            f"series; varying terms {pairs}): the system shown is the candidate whose "
+            "hidden states' equations best match stage one's estimated series, unchecked. "
+            "The library may lack the terms that carry the hidden state (a constant: "
+            "include_bias=True), or the closure_library those of its law; or the samples "
+            "are too few per cycle") if not expired() else Doubt(
             "not checked", "max_time was spent before any candidate closed system was "
-            "fitted by integration: the system shown is the best-closing candidate, "
-            "unchecked"),))
+            "fitted by integration: the system shown is the candidate whose hidden "
+            "states' equations best match stage one's estimated series, unchecked"),))
     elif not refine:
         result = from_proposals(proposals, ctx, first, hidden_names, stds)
     if not any(term.value != 0 for term in result.terms):

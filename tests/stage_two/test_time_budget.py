@@ -49,6 +49,8 @@ def test_a_budget_spent_before_stage_two_gives_the_unchecked_best_candidate(prey
     assert not result.confident and result.refinement is None
     assert [d.kind for d in result.doubts] == ["not checked", "time budget"]
     assert "max_time was spent before any candidate" in result.doubts[0]
+    assert ("the candidate whose hidden states' equations best match stage one's "
+            "estimated series, unchecked") in result.doubts[0]  # in words, not jargon
     left = result.doubts[1]
     assert "time budget (max_time=1e-06 s) did not allow" in left
     assert "hypotheses not fitted" in left
@@ -330,8 +332,8 @@ def test_a_slow_climbing_step_is_announced(monkeypatch, capsys):
         search.climb(start, False)
     n = len(search.neighbours(start))
     assert n >= 5
-    assert (f"] stage one's structure search, the equation: {n} neighbours to fit with "
-            f"Gaussian priors, about {n} s") in capsys.readouterr().err
+    assert (f"] stage one's structure search, the equation, climbing step 1: {n} "
+            f"neighbours to fit with Gaussian priors, about {n} s") in capsys.readouterr().err
 
 
 def test_a_step_that_cannot_end_in_time_is_not_begun(monkeypatch):
