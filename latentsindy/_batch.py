@@ -35,7 +35,8 @@ COLUMNS = ("name", "seed", "wall_s", "error", "hidden_states", "confident", "sco
 @dataclass(frozen=True)
 class Run:
     """One discovery of a batch: its name, seed, result (None if it failed), error
-    message (None if it succeeded) and wall time in seconds."""
+    message (None if it succeeded; with ``out=``, also set where its result could not be
+    written) and wall time in seconds."""
 
     name: str
     seed: int
