@@ -29,7 +29,9 @@ from ._stage_two.result import HiddenDiscovery
 
 TABLE = "runs.csv"
 COLUMNS = ("name", "seed", "wall_s", "error", "hidden_states", "confident", "score",
-           "equations")
+           "doubts", "equations")
+# the table's columns before "doubts" was added: such a table is added to as it is
+_EARLIER = tuple(c for c in COLUMNS if c != "doubts")
 
 
 @dataclass(frozen=True)
@@ -51,10 +53,14 @@ class Run:
                "wall_s": "" if math.isnan(self.wall) else round(self.wall, 2),
                "error": self.error or ""}
         if r is None:
-            return row | {"hidden_states": "", "confident": "", "score": "", "equations": ""}
+            return row | {"hidden_states": "", "confident": "", "score": "", "doubts": "",
+                          "equations": ""}
         return row | {
             "hidden_states": len(r.hidden_names), "confident": r.confident,
             "score": float(r.score),
+            # why a result is not confident, by kind (the sentences are in its file)
+            "doubts": "; ".join([*dict.fromkeys(d.kind for d in r.doubts)]
+                                + ["structure uncertain"] * bool(r.uncertain)),
             "equations": "; ".join(f"d{n}/dt = {e}" for n, e in r.rhs.items()),
         }
 
@@ -197,13 +203,15 @@ class _Writer:
         self.folder.mkdir(parents=True, exist_ok=True)
         self.several_seeds = several_seeds
         table = self.folder / TABLE
+        self.columns = COLUMNS
         if table.exists() and table.stat().st_size:
             with open(table, newline="") as fh:
-                header = next(csv.reader(fh), [])
-            if tuple(header) != COLUMNS:
-                raise ValueError(f"{table} is not a table of runs (its header is {header}, "
-                                 f"expected {list(COLUMNS)}); give out= another folder, or "
-                                 "move that file.")
+                header = tuple(next(csv.reader(fh), []))
+            if header not in (COLUMNS, _EARLIER):
+                raise ValueError(f"{table} is not a table of runs (its header is "
+                                 f"{list(header)}, expected {list(COLUMNS)}); give out= "
+                                 "another folder, or move that file.")
+            self.columns = header  # an earlier table: its columns
             return
         with open(table, "w", newline="") as fh:
             csv.DictWriter(fh, fieldnames=COLUMNS).writeheader()
@@ -222,6 +230,7 @@ class _Writer:
                 run = dataclasses.replace(run, error=f"not saved to {self.path(run)}: "
                                                      f"{type(err).__name__}: {err}")
         with open(self.folder / TABLE, "a", newline="") as fh:
-            csv.DictWriter(fh, fieldnames=COLUMNS).writerow(run.row())
+            csv.DictWriter(fh, fieldnames=self.columns,
+                           extrasaction="ignore").writerow(run.row())
         return run
 

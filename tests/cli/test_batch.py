@@ -12,6 +12,7 @@ import pysindy as ps
 import pytest
 
 from latentsindy import discover_hidden, discover_many, load, systems
+from latentsindy._batch import COLUMNS
 from latentsindy._cli.main import main
 
 LIBRARY = ps.PolynomialLibrary(degree=3, include_bias=False)
@@ -43,6 +44,10 @@ def _same_as_alone(run, alone):
                                [a.value for a in alone[run.name].terms], rtol=1e-6)
     row = run.row()
     assert row["hidden_states"] == 1 and row["error"] == ""
+    named = set(row["doubts"].split("; ")) - {""}
+    assert named == ({d.kind for d in run.result.doubts}
+                     | ({"structure uncertain"} if run.result.uncertain else set()))
+    assert (row["doubts"] == "") == run.result.confident  # here refined: why, if not
 
 
 def test_two_workers_give_the_one_by_one_results(recordings, alone):
@@ -134,6 +139,13 @@ def test_names_and_seeds_that_cannot_be_kept_apart_are_refused_before_any_run(
         discover_many([x], LIBRARY, t=t, seeds=[0, 1, 0])
 
 
+def test_the_table_says_why_a_run_is_not_confident(recordings):
+    t, x = recordings["worm1"]
+    (run,) = discover_many({"cut": x}, LIBRARY, t=t, max_time=1e-6, feature_names=["x"])
+    assert not run.result.confident
+    assert run.row()["doubts"] == "not checked; time budget"  # the budget cut it short
+
+
 def test_a_batch_run_again_into_its_folder_adds_to_its_table(recordings, tmp_path):
     """A batch stopped and run again (or another batch) into the same folder keeps the
     rows written before; a file of another kind in the table's place is not written
@@ -144,6 +156,13 @@ def test_a_batch_run_again_into_its_folder_adds_to_its_table(recordings, tmp_pat
     discover_many(short, LIBRARY, t=t[:6], out=tmp_path, feature_names=["x"])
     with open(tmp_path / "runs.csv") as fh:
         assert [r["name"] for r in csv.DictReader(fh)] == ["short", "short"]
+    earlier = tmp_path / "earlier"  # a table written before the doubts column
+    earlier.mkdir()
+    (earlier / "runs.csv").write_text(",".join(c for c in COLUMNS if c != "doubts") + "\n")
+    discover_many(short, LIBRARY, t=t[:6], out=earlier, feature_names=["x"])
+    with open(earlier / "runs.csv") as fh:
+        (row,) = list(csv.DictReader(fh))
+    assert "doubts" not in row and row["name"] == "short" and row["error"]
     other = tmp_path / "other"
     other.mkdir()
     (other / "runs.csv").write_text("a,b\n1,2\n")
