@@ -69,7 +69,6 @@ def run_all(run, tasks, report, jobs=1, out=None):
     contention); the rows so far written as JSON to ``out`` after every row when given
     (a run cut short keeps what it measured). Returns the rows."""
     rows = []
-    print(environment(), flush=True)
 
     def keep(row):
         rows.append(row)

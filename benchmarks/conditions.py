@@ -215,6 +215,9 @@ if __name__ == "__main__":
     parser.add_argument("--jobs", type=int, default=1, help="processes (one thread each)")
     parser.add_argument("--out", help="write every row as JSON here")
     args = parser.parse_args()
+    from _runner import environment  # noqa: E402
+
+    print(environment(), flush=True)  # what the numbers depend on, first
     if args.quick:
         args.draws, args.noise = 2, [0.01]
     main(args.families, args.draws, tuple(args.noise), tuple(args.conditions), args.jobs,

@@ -157,4 +157,7 @@ if __name__ == "__main__":
         parser.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES))
         parser.add_argument("--samples", type=int, help="one length for every case")
         args = parser.parse_args()
+        from _runner import environment  # noqa: E402
+
+        print(environment(), flush=True)  # what the numbers depend on, first
         main(args.devices, args.cases, args.samples)

@@ -293,6 +293,9 @@ if __name__ == "__main__":
     parser.add_argument("--verbose", action="store_true")
     parser.add_argument("--jobs", type=int, default=1, help="processes (one thread each)")
     args = parser.parse_args()
+    from _runner import environment  # noqa: E402
+
+    print(environment(), flush=True)  # what the numbers depend on, first
     if args.quick:
         args.draws, args.noise = 3, [0.01]
     main(args.families, args.draws, tuple(args.noise), args.out, args.verbose, args.jobs)

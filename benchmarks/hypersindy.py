@@ -98,4 +98,7 @@ if __name__ == "__main__":
         parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
         parser.add_argument("--quick", action="store_true", help="10k samples only")
         args = parser.parse_args()
+        from _runner import environment  # noqa: E402
+
+        print(environment(), flush=True)  # what the numbers depend on, first
         main((10_000,) if args.quick else (10_000, 100_000, 1_000_000))

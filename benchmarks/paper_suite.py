@@ -297,4 +297,7 @@ if __name__ == "__main__":
                         help="run these groups of cases only (figures go to "
                              "benchmarks/output/)")
     args = parser.parse_args()
+    from _runner import environment  # noqa: E402
+
+    print(environment(), flush=True)  # what the numbers depend on, first
     main(args.quick, args.seed, tuple(args.groups))

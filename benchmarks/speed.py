@@ -52,7 +52,6 @@ import pysindy as ps
 sys.path.insert(0, str(Path(__file__).parent))
 
 from _families import ALL_FAMILIES, draw  # noqa: E402
-from _runner import environment  # noqa: E402
 from _scoring import score_structure  # noqa: E402
 
 from latentsindy import discover_hidden  # noqa: E402
@@ -239,7 +238,9 @@ if __name__ == "__main__":
     parser.add_argument("--normal-equations", action="store_true",
                         help="the refinement's normal equations, dense against blocks")
     args = parser.parse_args()
-    print(environment(), flush=True)
+    from _runner import environment  # noqa: E402
+
+    print(environment(), flush=True)  # what the numbers depend on, first
     if args.normal_equations:
         normal_equations()
     elif args.scaling:

@@ -75,6 +75,9 @@ if __name__ == "__main__":
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--one", nargs=2, metavar=("SYSTEM", "T"))
     args = parser.parse_args()
+    from _runner import environment  # noqa: E402
+
+    print(environment(), flush=True)  # what the numbers depend on, first
     if args.one:
         print(json.dumps(run_one(args.one[0], int(args.one[1]))))
     else:

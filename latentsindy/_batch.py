@@ -110,8 +110,9 @@ def discover_many(recordings, library=None, *, t, seeds=(0,), n_jobs=1, backend=
         A folder: every run is written as it finishes, its result as ``NAME.npz``
         (``NAME_seedS.npz`` with several seeds; a name with a path separator is refused)
         and its row appended to ``runs.csv`` (a table already there is kept and added
-        to: run again into the same folder, the new rows follow the old). A result
-        that cannot be written is that run's error; the batch goes on.
+        to: run again into the same folder, the new rows follow the old, and results of
+        the same name are written over). A result that cannot be written is that run's
+        error (the result is still in ``run.result``); the batch goes on.
     **options
         Passed to :func:`discover_hidden` (``feature_names``, ``closure_library``, ...).
 
@@ -128,13 +129,19 @@ def discover_many(recordings, library=None, *, t, seeds=(0,), n_jobs=1, backend=
     missing = sorted(set(recordings) - set(times))
     if missing:
         raise ValueError(f"t has no entry for recording(s) {missing}.")
-    seeds = [int(s) for s in np.atleast_1d(seeds)]
+    given = np.atleast_1d(seeds)
+    if given.dtype.kind not in "iu":
+        raise TypeError(f"seeds must be integers; got {given.tolist()!r}. Pass e.g. "
+                        "seeds=[0, 1].")
+    seeds = [int(s) for s in given]
     repeated = sorted({s for s in seeds if seeds.count(s) > 1})
     if repeated:
         raise ValueError(f"seeds repeats {repeated}; a seed gives the same run every time, "
                          "so pass each seed once.")
     if out is not None:
         _check_file_names(recordings)
+    if "max_time" in options:  # refused once, here, rather than by every run
+        options = options | {"max_time": val.check_seconds(options["max_time"], "max_time")}
     for key in ("seed", "verbose"):
         if key in options:
             raise TypeError(f"discover_many sets {key!r} itself; use seeds=[...] instead."
@@ -158,16 +165,50 @@ def discover_many(recordings, library=None, *, t, seeds=(0,), n_jobs=1, backend=
     return [finished[name, seed] for name, _, _, _, seed, _ in calls]
 
 
+_RESERVED = {"CON", "PRN", "AUX", "NUL", *(f"{p}{k}" for p in ("COM", "LPT") for k in range(1, 10))}
+_NOT_IN_NAMES = '/\\:*?"<>|'  # path separators and what Windows refuses in a file name
+
+
+def _file_name_fault(name: str) -> str | None:
+    """Why ``name`` cannot be a result's file name on every system; None if it can."""
+    if name.strip(" .") == "":
+        return "no name"
+    if any(c in _NOT_IN_NAMES or ord(c) < 32 for c in name):
+        return "a path separator, or a character Windows refuses"
+    if name.split(".")[0].upper() in _RESERVED or name[-1] in " .":
+        return "a name Windows reserves, or one ending in a space or dot"
+    return None
+
+
 def _check_file_names(recordings) -> None:
     """With ``out=``, each recording's name is its result's file name: refuse names that
-    are not one (a path separator, nothing, ``.`` or ``..``) before any run starts."""
-    bad = [name for name in recordings
-           if str(name) in ("", ".", "..") or any(c in str(name) for c in "/\\\0")]
-    if bad:
-        fixed = [str(n).replace("/", "_").replace("\\", "_").replace("\0", "") for n in bad]
-        fixed = [n if n not in ("", ".", "..") else "run" for n in fixed]
-        raise ValueError(f"with out=, each recording's name names its result file; {bad} "
-                         f"cannot (a path separator, or no name): rename them, e.g. {fixed}.")
+    cannot be one on every system, and names that would share a file (``1`` and
+    ``"1"``; ``A`` and ``a`` on a case-insensitive disk), before any run starts."""
+    names = [str(name) for name in recordings]
+    faults = {n: f for n in names if (f := _file_name_fault(n)) is not None}
+    if faults:
+        taken = {n.lower() for n in names if n not in faults}
+        fixed = []
+        for n in faults:
+            base = "".join("_" if c in _NOT_IN_NAMES or ord(c) < 32 else c
+                           for c in n).strip(" .") or "run"
+            if base.split(".")[0].upper() in _RESERVED:
+                base = f"{base}_"
+            candidate, k = base, 1
+            while candidate.lower() in taken:
+                k += 1
+                candidate = f"{base}_{k}"
+            taken.add(candidate.lower())
+            fixed.append(candidate)
+        raise ValueError(f"with out=, each recording's name names its result file; these "
+                         f"cannot: {faults}. Rename them, e.g. {fixed}.")
+    lowered = [n.lower() for n in names]
+    shared = [name for name, low in zip(recordings, lowered, strict=True)
+              if lowered.count(low) > 1]
+    if shared:
+        raise ValueError(f"with out=, each recording's name names its result file; {shared} "
+                         "would share one (names are compared as text, ignoring case): "
+                         "rename them apart.")
 
 
 def _on_dask(scheduler, calls):
@@ -195,23 +236,28 @@ def _on_dask(scheduler, calls):
 
 class _Writer:
     """Writes each run as it finishes: its result file and its row of ``runs.csv``
-    (appended to the folder's table where it has one: a batch run again, or resumed,
-    into the same folder keeps the rows before it)."""
+    (appended to the folder's table where it has one: a batch run again into the same
+    folder keeps the rows before it, and writes its results over those of the same
+    name)."""
 
     def __init__(self, out, several_seeds: bool):
         self.folder = Path(out)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.several_seeds = several_seeds
         table = self.folder / TABLE
-        self.columns = COLUMNS
+        self.columns: tuple[str, ...] = COLUMNS
         if table.exists() and table.stat().st_size:
-            with open(table, newline="") as fh:
+            with open(table, newline="", encoding="utf-8-sig") as fh:  # a spreadsheet's BOM
                 header = tuple(next(csv.reader(fh), []))
             if header not in (COLUMNS, _EARLIER):
                 raise ValueError(f"{table} is not a table of runs (its header is "
                                  f"{list(header)}, expected {list(COLUMNS)}); give out= "
                                  "another folder, or move that file.")
             self.columns = header  # an earlier table: its columns
+            with open(table, "rb+") as fh:  # a last row cut short of its newline: end it
+                fh.seek(-1, 2)
+                if fh.read(1) != b"\n":
+                    fh.write(b"\n")
             return
         with open(table, "w", newline="") as fh:
             csv.DictWriter(fh, fieldnames=COLUMNS).writeheader()
@@ -226,9 +272,10 @@ class _Writer:
         if run.result is not None:
             try:
                 run.result.save(self.path(run))
-            except OSError as err:
-                run = dataclasses.replace(run, error=f"not saved to {self.path(run)}: "
-                                                     f"{type(err).__name__}: {err}")
+            except Exception as err:  # noqa: BLE001 - the run stands; the batch goes on
+                run = dataclasses.replace(run, error=(
+                    f"result not saved ({type(err).__name__}: {err}); it is in run.result: "
+                    "save it elsewhere with run.result.save(path)"))
         with open(self.folder / TABLE, "a", newline="") as fh:
             csv.DictWriter(fh, fieldnames=self.columns,
                            extrasaction="ignore").writerow(run.row())

@@ -149,10 +149,9 @@ def stamped(result, state: Budget):
     if left is not None:
         return replace(result, doubts=result.doubts + (Doubt(
             "time budget", f"the time budget (max_time={state.max_time:g} s) did not allow "
-            f"the full judgement ({state.elapsed():.1f} s used: a step that could not end "
-            f"in time was not started); left out: {left}. The system shown is the best "
-            "found by then. Raise max_time (--max-time on the command line), or leave it "
-            "unset, for a full judgement"),))
+            f"the full judgement ({state.elapsed():.1f} s used); left out: {left}. The "
+            "system shown is the best found by then. Raise max_time (--max-time on the "
+            "command line), or leave it unset, for a full judgement"),))
     if state.overran():
         return replace(result, notes=result.notes + (
             f"max_time={state.max_time:g} s was passed ({state.elapsed():.1f} s used) while "
@@ -243,10 +242,9 @@ def passed(what: str) -> None:
     if state is None:
         return
     if what not in state.passed:
-        if not state.passed and os.getpid() == state.owner:
-            progress(f"time budget (max_time={state.max_time:g} s) spent: the steps left "
-                     f"are not judged (the first: {what}); the best system found so far "
-                     "will be returned")
+        if os.getpid() == state.owner:  # each step left out, once
+            progress(f"left out for the time budget (max_time={state.max_time:g} s): "
+                     f"{what}")
         state.passed.append(what)
     if os.getpid() != state.owner and state.shared is not None:
         state.record_elsewhere(what)  # for the process that opened the budget

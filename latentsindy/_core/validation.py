@@ -172,9 +172,10 @@ def check_positive(value, what: str, *, allow_zero: bool = False, integer: bool 
     """``value`` as a float (an int with ``integer``) that is finite and > 0 (>= 0 with
     ``allow_zero``); text and booleans are refused, not converted."""
     kind = int if integer else float
-    if isinstance(value, (str, bytes, bool, np.bool_)):
+    if isinstance(value, (str, bytes, bool, np.bool_)) or (
+            isinstance(value, np.ndarray) and value.dtype.kind not in "iuf"):
         raise TypeError(f"{what} must be a number; got {value!r} "
-                        f"({type(value).__name__}).")
+                        f"({type(value).__name__}): pass the number itself (15, not '15').")
     try:
         v = kind(value)
     except (TypeError, ValueError, OverflowError):

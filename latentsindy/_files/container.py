@@ -3,7 +3,9 @@ JSON document (``meta``) that names the format and its version. Nothing is pickl
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import zipfile
 from pathlib import Path
 
@@ -15,9 +17,18 @@ class Refused(ValueError):
 
 
 def write(path, meta_json: str, arrays: dict) -> None:
-    """Write the JSON document and the arrays to ``path`` (compressed ``.npz``)."""
-    with open(Path(path), "wb") as fh:
-        np.savez_compressed(fh, meta=np.array(meta_json), **arrays)
+    """Write the JSON document and the arrays to ``path`` (compressed ``.npz``), whole or
+    not at all: to a file beside it, then moved over it, so a write that fails (a full
+    disk) leaves an earlier file of that name as it was."""
+    path = Path(path)
+    part = path.with_name(f".{path.name}.{os.getpid()}.part")
+    try:
+        with open(part, "wb") as fh:
+            np.savez_compressed(fh, meta=np.array(meta_json), **arrays)
+        os.replace(part, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            part.unlink()
 
 
 def read(path):

@@ -148,7 +148,8 @@ def discover_hidden(x_observed, library=None, *, t, feature_names=None, hidden_t
         anything: the system returned is then an unchecked candidate, with the doubt
         ``"not checked"`` too. A call that left nothing out but ended past
         ``max_time`` has a note saying so, not the doubt. With ``verbose``, progress
-        lines say which step runs and how many remain, and when the budget runs out.
+        lines say which step runs, how many remain, and each step the budget leaves
+        out.
     device : str
         Torch device for stage one's training and the refinement's integrations
         ("cpu", default, or "cuda"). A GPU pays off for long series in stage one; the

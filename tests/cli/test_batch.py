@@ -129,14 +129,23 @@ def test_a_failed_run_is_recorded_and_the_others_go_on(recordings):
 def test_names_and_seeds_that_cannot_be_kept_apart_are_refused_before_any_run(
         recordings, tmp_path):
     t, x = recordings["worm1"]
-    with pytest.raises(ValueError, match=r"\['cell 1/trial a', '\.\.'\] cannot \(a path "
-                       r"separator, or no name\): rename them, e\.g\. \['cell 1_trial a', "
-                       r"'run'\]"):
-        discover_many({"fine": x, "cell 1/trial a": x, "..": x}, LIBRARY, t=t,
+    with pytest.raises(ValueError, match=r"these cannot: \{'cell 1/trial a': 'a path "
+                       r"separator, or a character Windows refuses', '\.\.': 'no name', "
+                       r"'CON': 'a name Windows reserves.*'\}\. Rename them, e\.g\. "
+                       r"\['cell 1_trial a', 'run', 'CON_'\]"):
+        discover_many({"fine": x, "cell 1/trial a": x, "..": x, "CON": x}, LIBRARY, t=t,
                       out=tmp_path, feature_names=["x"])
+    with pytest.raises(ValueError, match=r"\{'a/b': .*\}\. Rename them, e\.g\. \['a_b_2'\]"):
+        discover_many({"a/b": x, "a_b": x}, LIBRARY, t=t, out=tmp_path)  # a suggestion free
+    with pytest.raises(ValueError, match=r"\[1, '1'\] would share one"):
+        discover_many({1: x, "1": x}, LIBRARY, t=t, out=tmp_path)
     assert not (tmp_path / "runs.csv").exists()  # nothing ran, nothing written
     with pytest.raises(ValueError, match=r"seeds repeats \[0\]; .* pass each seed once"):
         discover_many([x], LIBRARY, t=t, seeds=[0, 1, 0])
+    with pytest.raises(TypeError, match=r"seeds must be integers; got \[0\.5, 0\.7\]"):
+        discover_many([x], LIBRARY, t=t, seeds=[0.5, 0.7])
+    with pytest.raises(ValueError, match="max_time must be a number of seconds > 0"):
+        discover_many([x], LIBRARY, t=t, max_time=0)  # once, not by every run
 
 
 def test_the_table_says_why_a_run_is_not_confident(recordings):
@@ -163,6 +172,13 @@ def test_a_batch_run_again_into_its_folder_adds_to_its_table(recordings, tmp_pat
     with open(earlier / "runs.csv") as fh:
         (row,) = list(csv.DictReader(fh))
     assert "doubts" not in row and row["name"] == "short" and row["error"]
+    cut = tmp_path / "cut"  # a table whose last row lost its newline, saved with a BOM
+    cut.mkdir()
+    (cut / "runs.csv").write_bytes(b"\xef\xbb\xbf" + ",".join(COLUMNS).encode()
+                                   + b"\nold,0,1.0,E,,,,,")
+    discover_many(short, LIBRARY, t=t[:6], out=cut, feature_names=["x"])
+    with open(cut / "runs.csv", encoding="utf-8-sig") as fh:
+        assert [r["name"] for r in csv.DictReader(fh)] == ["old", "short"]
     other = tmp_path / "other"
     other.mkdir()
     (other / "runs.csv").write_text("a,b\n1,2\n")
@@ -175,12 +191,13 @@ def test_a_batch_run_again_into_its_folder_adds_to_its_table(recordings, tmp_pat
                                 t={"worm1": t, "short": t[:6]}, out=tmp_path,
                                 feature_names=["x"])
     assert run.result is not None and run.error.startswith(
-        f"not saved to {tmp_path / 'worm1.npz'}: IsADirectoryError")
+        "result not saved (IsADirectoryError") and "run.result.save(path)" in run.error
     assert failed.error.startswith("ValueError")
     with open(tmp_path / "runs.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert [r["name"] for r in rows] == ["short", "short", "worm1", "short"]
-    assert rows[2]["error"].startswith("not saved to") and rows[2]["hidden_states"] == "1"
+    assert rows[2]["error"].startswith("result not saved") and rows[2]["hidden_states"] == "1"
+    assert not list(tmp_path.glob(".*.part"))  # no half-written file left beside
 
 
 def test_command_line_runs_a_folder_into_one_table(recordings, tmp_path, capsys):

@@ -43,8 +43,8 @@ def test_an_infinite_max_time_is_no_limit():
 
 def test_a_budget_spent_before_stage_two_gives_the_unchecked_best_candidate(prey):
     """Stage one always completes; with the budget spent by then, no hypothesis is
-    fitted and the answer is the best-closing candidate, unchecked, with the budget's
-    doubt naming what was left out."""
+    fitted and the answer is the candidate whose hidden states' equations best match
+    stage one's series, unchecked, with the budget's doubt naming what was left out."""
     result = _discover(prey, max_time=1e-6)
     assert not result.confident and result.refinement is None
     assert [d.kind for d in result.doubts] == ["not checked", "time budget"]
@@ -437,11 +437,11 @@ def test_progress_lines_only_when_verbose(capsys):
     with budget.budget(1e-9) as left:
         assert budget.spent("a step") and left.passed == ["a step"]
     assert capsys.readouterr().err == ""  # quiet: the budget's end not said either
-    with budget.budget(1e-9, verbose=True):  # said once, with the first step left out
-        assert budget.spent("a step") and budget.spent("another")
+    with budget.budget(1e-9, verbose=True):  # each step left out said once, as it is
+        assert budget.spent("a step") and budget.spent("another") and budget.spent("a step")
     said = capsys.readouterr().err
-    assert said.count("time budget (max_time=1e-09 s) spent") == 1
-    assert "(the first: a step); the best system found so far will be returned" in said
+    assert said.count("left out for the time budget (max_time=1e-09 s): ") == 2
+    assert said.count(": a step\n") == 1 and said.count(": another\n") == 1
     budget.progress("outside")  # no budget: nothing printed, nothing expires
     budget.passed("anything")
     assert not budget.expired() and capsys.readouterr().err == ""
