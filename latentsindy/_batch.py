@@ -192,7 +192,7 @@ def _check_file_names(recordings) -> None:
         for n in faults:
             base = "".join("_" if c in _NOT_IN_NAMES or ord(c) < 32 else c
                            for c in n).strip(" .") or "run"
-            if base.split(".")[0].upper() in _RESERVED:
+            if _file_name_fault(base):  # what is left is a reserved name
                 base = f"{base}_"
             candidate, k = base, 1
             while candidate.lower() in taken:
